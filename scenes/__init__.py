@@ -1,0 +1,1 @@
+"""Scene specifications, procedural generation, meshes and MuJoCo models (vgpnav_env.scenes)."""

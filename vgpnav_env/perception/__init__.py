@@ -1,0 +1,1 @@
+"""vgpnav_env/perception."""
