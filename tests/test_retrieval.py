@@ -1,0 +1,171 @@
+"""VLAD retrieval on synthetic textured views and the geometry-aware selection (paper Alg. 1)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vgpnav_env.geometry import camera_pose
+from vgpnav_env.perception.retrieval import (
+    RetrievalConfig,
+    VladConfig,
+    VladIndex,
+    geometric_median,
+    select_references,
+)
+
+STEP = 40  # pixels between database crops of the panorama
+
+
+@pytest.fixture(scope="module")
+def panorama() -> np.ndarray:
+    """A 240 x 1600 RGB 'world' of random shapes over smooth noise."""
+    rng = np.random.default_rng(0)
+    h, w = 240, 1600
+    base = cv2.resize(rng.integers(0, 255, (h // 16, w // 16, 3), dtype=np.uint8), (w, h), cv2.INTER_CUBIC)
+    img = np.ascontiguousarray(base)
+    for _ in range(260):
+        colour = tuple(int(c) for c in rng.integers(0, 255, 3))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        kind = rng.integers(3)
+        if kind == 0:
+            cv2.rectangle(
+                img, (x, y), (x + int(rng.integers(8, 50)), y + int(rng.integers(8, 50))), colour, -1
+            )
+        elif kind == 1:
+            cv2.circle(img, (x, y), int(rng.integers(4, 25)), colour, -1)
+        else:
+            cv2.line(img, (x, y), (x + int(rng.integers(-60, 60)), y + int(rng.integers(-60, 60))), colour, 3)
+    return img
+
+
+@pytest.fixture(scope="module")
+def index(panorama: np.ndarray) -> VladIndex:
+    crops = [panorama[:, x : x + 320] for x in range(0, panorama.shape[1] - 320 + 1, STEP)]
+    return VladIndex.fit(crops, config=VladConfig(n_words=32), seed=0, fingerprint="db-v1")
+
+
+def test_descriptors_are_unit_norm_and_deterministic(index: VladIndex, panorama: np.ndarray) -> None:
+    assert index.database.shape == (33, 32 * 128) and index.database.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(index.database, axis=1), 1.0, atol=1e-5)
+    again = VladIndex.fit(
+        [panorama[:, x : x + 320] for x in range(0, 1281, STEP)], config=VladConfig(n_words=32), seed=0
+    )
+    np.testing.assert_allclose(again.database, index.database, atol=1e-6)
+    d = index.describe(panorama[:, :320])
+    assert d.shape == (1, index.dim)
+    np.testing.assert_allclose(d[0], index.database[0], atol=1e-6)
+
+
+def test_query_retrieves_the_overlapping_views(index: VladIndex, panorama: np.ndarray) -> None:
+    rng = np.random.default_rng(1)
+    hits = 0
+    offsets = range(15, 1260, 97)
+    for x in offsets:
+        crop = panorama[:, x : x + 320].astype(float) * 0.85 + 20 + rng.normal(0, 6, (240, 320, 3))
+        sim = index.similarity(np.clip(crop, 0, 255).astype(np.uint8))
+        nearest = {x // STEP, x // STEP + 1}
+        hits += int(np.argmax(sim)) in nearest
+    assert hits >= len(offsets) - 1, f"{hits}/{len(offsets)} queries retrieved an overlapping view"
+
+
+def test_save_load_round_trip_and_fingerprint(index: VladIndex, panorama: np.ndarray, tmp_path) -> None:
+    assert VladIndex.load(tmp_path / "missing") is None
+    index.save(tmp_path)
+    loaded = VladIndex.load(tmp_path, expected_fingerprint="db-v1")
+    assert loaded is not None and loaded.fingerprint == "db-v1" and loaded.config == index.config
+    np.testing.assert_array_equal(loaded.database, index.database)
+    np.testing.assert_allclose(loaded.describe(panorama[:, 100:420]), index.describe(panorama[:, 100:420]))
+    assert VladIndex.load(tmp_path, expected_fingerprint="db-v2") is None
+    assert not list(tmp_path.glob("*.tmp"))
+    (tmp_path / "vlad_index.json").write_text("{not json")
+    with pytest.raises(ValueError, match="corrupt VLAD index"):
+        VladIndex.load(tmp_path)
+
+
+def test_whitening_keeps_retrieval(panorama: np.ndarray) -> None:
+    crops = [panorama[:, x : x + 320] for x in range(0, 1281, STEP)]
+    idx = VladIndex.fit(crops, config=VladConfig(n_words=32, whiten=True, whiten_dim=16), seed=0)
+    assert idx.database.shape == (33, 16)
+    assert int(np.argmax(idx.similarity(panorama[:, 200:520]))) == 5
+
+
+def _reference_alg1(sim: np.ndarray, T: np.ndarray, cfg: RetrievalConfig) -> list[int]:
+    """Literal loop transcription of paper Alg. 1 (geometric median, L_scale = max valid distance)."""
+    pool = sorted(range(len(sim)), key=lambda i: -sim[i])[: cfg.pool_factor * cfg.k]
+    best = pool[0]
+    med = geometric_median(T[pool, :3, 3])
+    d = {i: np.linalg.norm(T[i, :3, 3] - med) for i in pool}
+    tau = np.percentile(list(d.values()), cfg.outlier_percentile)
+    valid = [i for i in pool if d[i] <= tau or i == best]
+    lo, hi = min(sim[i] for i in valid), max(sim[i] for i in valid)
+    s_norm = {i: (sim[i] - lo) / (hi - lo) for i in valid}
+    L = max(np.linalg.norm(T[a, :3, 3] - T[b, :3, 3]) for a in valid for b in valid)
+    S = [best]
+    while len(S) < cfg.k and len(S) < len(valid):
+        c_star, best_score = None, -np.inf
+        for c in valid:
+            if c in S:
+                continue
+            d_geo = min(
+                cfg.lambda_pos * np.linalg.norm(T[c, :3, 3] - T[s, :3, 3]) / L
+                + cfg.lambda_ang * np.arccos(np.clip(T[c, :3, 2] @ T[s, :3, 2], -1, 1)) / np.pi
+                for s in S
+            )
+            if d_geo + cfg.lambda_sim * s_norm[c] > best_score:
+                c_star, best_score = c, d_geo + cfg.lambda_sim * s_norm[c]
+        S.append(c_star)
+    return S
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_geometry_selection_matches_literal_algorithm(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    M = 120
+    T = np.array(
+        [
+            camera_pose([*rng.uniform(0, 8, 2), 1.2], rng.uniform(-np.pi, np.pi), rng.uniform(0, 0.5))
+            for _ in range(M)
+        ]
+    )
+    sim = rng.uniform(0, 1, M)
+    cfg = RetrievalConfig(k=10)
+    got = select_references(sim, T, cfg)
+    assert got.tolist() == _reference_alg1(sim, T, cfg)
+    assert len(set(got.tolist())) == 10 and got[0] == np.argmax(sim)
+
+
+def test_geometry_rejects_aliasing_and_prefers_diverse_views() -> None:
+    rng = np.random.default_rng(5)
+    # 30 views around (2, 2): 10 near-duplicates of the best view with top similarity, 20 diverse
+    # ones slightly less similar, plus one aliased view 20 m away that is the 3rd most similar.
+    dup = [
+        camera_pose([2.0 + rng.normal(0, 0.01), 2.0, 1.2], 0.0 + rng.normal(0, 0.01), 0.35) for _ in range(10)
+    ]
+    diverse = [
+        camera_pose([*rng.uniform(0.5, 3.5, 2), 1.2], rng.uniform(-np.pi, np.pi), 0.35) for _ in range(20)
+    ]
+    alias = [camera_pose([22.0, 2.0, 1.2], 0.0, 0.35)]
+    T = np.array(dup + diverse + alias)
+    sim = np.concatenate([np.linspace(0.95, 0.9, 10), np.linspace(0.85, 0.7, 20), [0.94]])
+    cfg = RetrievalConfig(k=5)
+    topk = select_references(sim, T, RetrievalConfig(k=5, method="topk"))
+    geo = select_references(sim, T, cfg)
+    assert topk.tolist() == [0, 1, 30, 2, 3]
+    assert geo[0] == 0 and 30 not in geo
+    assert sum(i < 10 for i in geo) == 1, "near-duplicates of the best view should not be re-selected"
+    # The best match is kept even when it is the spatial outlier.
+    sim_alias_best = sim.copy()
+    sim_alias_best[30] = 1.0
+    assert select_references(sim_alias_best, T, cfg)[0] == 30
+
+
+def test_selection_edge_cases() -> None:
+    T = np.array([camera_pose([0, 0, 1.2], 0.0, 0.3)] * 3)
+    assert select_references(np.zeros(0), np.zeros((0, 4, 4))).size == 0
+    assert sorted(select_references(np.array([0.5, 0.5, 0.5]), T).tolist()) == [0, 1, 2]
+    with pytest.raises(ValueError, match="need similarity"):
+        select_references(np.ones(3), T[:2])
+    with pytest.raises(ValueError, match="method must be"):
+        RetrievalConfig(method="random")

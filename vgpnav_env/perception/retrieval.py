@@ -1,0 +1,406 @@
+"""Global image retrieval: DenseVLAD descriptors and the geometry-aware reference selection.
+
+- :class:`VladIndex` turns pixels into one global descriptor per image (DenseVLAD-style:
+  RootSIFT on a dense grid, a k-means vocabulary learned on the database, VLAD with
+  intra-normalisation then L2, optional PCA-whitening). Similarity = dot product of
+  descriptors (cosine, in [-1, 1]).
+- :func:`select_references` is the paper's Alg. 1 (geometry-aware retrieval) or plain top-k.
+
+Database poses ``T_w`` are ``T_wi`` (camera i -> world, OpenCV camera, metres).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+#: Bumped whenever the descriptor computation changes, so stale caches are not loaded.
+FORMAT_VERSION = 1
+_ARRAYS_FILE = "vlad_index.npz"
+_META_FILE = "vlad_index.json"
+
+
+@dataclass(frozen=True)
+class VladConfig:
+    """Descriptor settings.
+
+    Images are converted to grey and resized so the longer side is ``max_side`` pixels;
+    SIFT descriptors are computed on a dense grid (``grid_step`` pixels apart) at every
+    patch size in ``patch_sizes`` (pixels, SIFT keypoint diameter) and RootSIFT-normalised.
+    """
+
+    max_side: int = 160
+    grid_step: int = 6
+    patch_sizes: tuple[int, ...] = (8,)
+    n_words: int = 64
+    max_training_descriptors: int = 60000
+    kmeans_iterations: int = 40
+    power_norm: bool = False
+    whiten: bool = False
+    whiten_dim: int = 256
+
+    def __post_init__(self) -> None:
+        if self.max_side < 32:
+            raise ValueError(f"max_side must be >= 32 pixels, got {self.max_side}")
+        if self.grid_step < 1 or not self.patch_sizes or min(self.patch_sizes) < 2:
+            raise ValueError(
+                f"grid_step must be >= 1 and patch_sizes non-empty with sizes >= 2, "
+                f"got {self.grid_step}, {self.patch_sizes}"
+            )
+        if self.n_words < 2:
+            raise ValueError(f"n_words must be >= 2, got {self.n_words}")
+        if self.whiten_dim < 1:
+            raise ValueError(f"whiten_dim must be >= 1, got {self.whiten_dim}")
+
+
+def _to_grey(image: ArrayLike, max_side: int) -> NDArray[np.uint8]:
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise ValueError(f"images must be uint8 (HxWx3 RGB or HxW grey), got dtype {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    elif img.ndim != 2:
+        raise ValueError(f"images must be HxWx3 RGB or HxW grey, got shape {img.shape}")
+    h, w = img.shape
+    f = max_side / max(h, w)
+    if f < 1.0:
+        img = cv2.resize(img, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
+    return img
+
+
+class _DenseRootSift:
+    """RootSIFT descriptors (n, 128) float32 on a dense grid of a grey image."""
+
+    def __init__(self, config: VladConfig) -> None:
+        self._config = config
+        self._sift = cv2.SIFT_create()
+        self._grids: dict[tuple[int, int], list[cv2.KeyPoint]] = {}
+
+    def _keypoints(self, h: int, w: int) -> list[cv2.KeyPoint]:
+        if (h, w) not in self._grids:
+            c = self._config
+            kps = []
+            for size in c.patch_sizes:
+                m = size / 2.0
+                ys = np.arange(m, h - m + 1e-9, c.grid_step)
+                xs = np.arange(m, w - m + 1e-9, c.grid_step)
+                kps += [cv2.KeyPoint(float(x), float(y), float(size)) for y in ys for x in xs]
+            self._grids[(h, w)] = kps
+        return self._grids[(h, w)]
+
+    def __call__(self, grey: NDArray[np.uint8]) -> NDArray[np.float32]:
+        kps = self._keypoints(*grey.shape)
+        if not kps:
+            return np.zeros((0, 128), np.float32)
+        _, desc = self._sift.compute(grey, kps)
+        if desc is None:
+            return np.zeros((0, 128), np.float32)
+        desc = desc.astype(np.float32)
+        desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)
+        return np.sqrt(desc)
+
+
+def _vlad(desc: NDArray[np.float32], centres: NDArray[np.float32], power_norm: bool) -> NDArray[np.float32]:
+    """Intra-normalised, L2-normalised VLAD (K*128,) of local descriptors (n, 128)."""
+    K, D = centres.shape
+    if len(desc) == 0:
+        return np.zeros(K * D, np.float32)
+    d2 = (desc**2).sum(1)[:, None] - 2.0 * desc @ centres.T + (centres**2).sum(1)[None, :]
+    words = np.argmin(d2, axis=1)
+    V = np.zeros((K, D), np.float32)
+    np.add.at(V, words, desc)
+    V -= np.bincount(words, minlength=K)[:, None].astype(np.float32) * centres
+    if power_norm:
+        V = np.sign(V) * np.sqrt(np.abs(V))
+    V /= np.maximum(np.linalg.norm(V, axis=1, keepdims=True), 1e-12)
+    v = V.ravel()
+    return v / max(float(np.linalg.norm(v)), 1e-12)
+
+
+def _atomic_write(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+@dataclass
+class VladIndex:
+    """A learned VLAD vocabulary (+ optional whitening) and the database's descriptors.
+
+    Build with :meth:`fit`; ``database`` holds the (M, D) descriptors of the fitting images
+    in order, so ``similarity(query)`` gives one score per database image.
+    """
+
+    config: VladConfig
+    centres: NDArray[np.float32]
+    database: NDArray[np.float32]
+    fingerprint: str = ""
+    pca_mean: NDArray[np.float32] | None = None
+    pca_projection: NDArray[np.float32] | None = None
+    _extractor: _DenseRootSift | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def dim(self) -> int:
+        """Length of a global descriptor."""
+        return int(self.database.shape[1])
+
+    @classmethod
+    def fit(
+        cls,
+        images: Sequence[ArrayLike],
+        *,
+        config: VladConfig | None = None,
+        seed: int = 0,
+        fingerprint: str = "",
+    ) -> VladIndex:
+        """Learn the vocabulary (k-means, seeded) on ``images`` and describe them as the database."""
+        config = config or VladConfig()
+        if len(images) == 0:
+            raise ValueError("VladIndex.fit needs at least one database image")
+        extractor = _DenseRootSift(config)
+        local = [extractor(_to_grey(im, config.max_side)) for im in images]
+        stacked = np.concatenate(local, axis=0)
+        if len(stacked) < config.n_words:
+            raise ValueError(
+                f"only {len(stacked)} local descriptors for {config.n_words} words: "
+                "use larger images, a smaller grid_step or fewer n_words"
+            )
+        rng = np.random.default_rng(seed)
+        if len(stacked) > config.max_training_descriptors:
+            stacked = stacked[rng.choice(len(stacked), config.max_training_descriptors, replace=False)]
+        cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, config.kmeans_iterations, 1e-4)
+        _, _, centres = cv2.kmeans(
+            np.ascontiguousarray(stacked, np.float32),
+            config.n_words,
+            None,
+            criteria,
+            1,
+            cv2.KMEANS_PP_CENTERS,
+        )
+        centres = centres.astype(np.float32)
+        raw = np.stack([_vlad(d, centres, config.power_norm) for d in local])
+        index = cls(config, centres, raw, fingerprint, _extractor=extractor)
+        if config.whiten and len(images) >= 3:
+            mean = raw.mean(axis=0)
+            _, s, Vt = np.linalg.svd(raw - mean, full_matrices=False)
+            dim = min(config.whiten_dim, len(images) - 1)
+            eig = s[:dim] ** 2 / max(len(images) - 1, 1)
+            index.pca_mean = mean.astype(np.float32)
+            index.pca_projection = (Vt[:dim] / np.sqrt(eig + 1e-6 * eig[0])[:, None]).astype(np.float32)
+            index.database = index._project(raw)
+        return index
+
+    def _project(self, raw: NDArray[np.float32]) -> NDArray[np.float32]:
+        if self.pca_projection is None or self.pca_mean is None:
+            return raw.astype(np.float32)
+        out = (raw - self.pca_mean) @ self.pca_projection.T
+        return (out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+
+    def describe(self, images: Sequence[ArrayLike] | NDArray[np.uint8]) -> NDArray[np.float32]:
+        """Global descriptors (n, D) float32, unit L2 norm, of uint8 RGB (HxWx3) or grey images.
+
+        A single image array (HxWx3 or HxW) is also accepted and gives shape (1, D).
+        """
+        if isinstance(images, np.ndarray) and (
+            images.ndim == 2 or (images.ndim == 3 and images.shape[2] == 3)
+        ):
+            images = [images]
+        if self._extractor is None:
+            self._extractor = _DenseRootSift(self.config)
+        raw = np.stack(
+            [
+                _vlad(
+                    self._extractor(_to_grey(im, self.config.max_side)), self.centres, self.config.power_norm
+                )
+                for im in images
+            ]
+        )
+        return self._project(raw)
+
+    def similarity(self, image: ArrayLike) -> NDArray[np.float64]:
+        """Similarity (M,) of one query image to every database image (dot products)."""
+        return (self.database @ self.describe(np.asarray(image))[0]).astype(np.float64)
+
+    def save(self, directory: str | os.PathLike) -> None:
+        """Write ``vlad_index.npz`` + ``vlad_index.json`` into ``directory`` (each atomically)."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        arrays = {
+            "centres": self.centres,
+            "database": self.database,
+            "fingerprint": np.array(self.fingerprint),
+        }
+        if self.pca_mean is not None and self.pca_projection is not None:
+            arrays |= {"pca_mean": self.pca_mean, "pca_projection": self.pca_projection}
+        _atomic_write(d / _ARRAYS_FILE, lambda f: np.savez(f, **arrays))
+        meta = {
+            "format_version": FORMAT_VERSION,
+            "fingerprint": self.fingerprint,
+            "config": asdict(self.config),
+        }
+        _atomic_write(d / _META_FILE, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike, expected_fingerprint: str | None = None) -> VladIndex | None:
+        """Load a saved index, or ``None`` on a cache miss.
+
+        A cache miss is: no saved index in ``directory``, an older ``FORMAT_VERSION``, or a
+        stored fingerprint different from ``expected_fingerprint`` (not checked when None).
+        Files that exist but cannot be parsed raise ``ValueError``.
+        """
+        d = Path(directory)
+        if not (d / _META_FILE).is_file() or not (d / _ARRAYS_FILE).is_file():
+            return None
+        try:
+            meta = json.loads((d / _META_FILE).read_text())
+            if meta.get("format_version") != FORMAT_VERSION:
+                return None
+            if expected_fingerprint is not None and meta["fingerprint"] != expected_fingerprint:
+                return None
+            cfg = meta["config"]
+            config = VladConfig(**(cfg | {"patch_sizes": tuple(cfg["patch_sizes"])}))
+            with np.load(d / _ARRAYS_FILE) as z:
+                if str(z["fingerprint"]) != meta["fingerprint"]:
+                    return None
+                pca = ("pca_mean" in z, "pca_projection" in z)
+                return cls(
+                    config,
+                    z["centres"].astype(np.float32),
+                    z["database"].astype(np.float32),
+                    meta["fingerprint"],
+                    z["pca_mean"].astype(np.float32) if all(pca) else None,
+                    z["pca_projection"].astype(np.float32) if all(pca) else None,
+                )
+        except (OSError, KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"corrupt VLAD index in {d}: {e}") from e
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """Reference selection (paper Alg. 1 defaults).
+
+    ``method="geometry"`` is Alg. 1; ``"topk"`` is plain top-k by similarity (ablation).
+    ``l_scale`` (metres) normalises translation distances in the diversity term; None =
+    the largest pairwise camera distance in the valid pool (the paper leaves it undefined).
+    """
+
+    k: int = 10
+    pool_factor: int = 4
+    method: Literal["geometry", "topk"] = "geometry"
+    lambda_pos: float = 0.2
+    lambda_ang: float = 0.6
+    lambda_sim: float = 0.2
+    outlier_percentile: float = 95.0
+    l_scale: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.k < 1 or self.pool_factor < 1:
+            raise ValueError(f"k and pool_factor must be >= 1, got {self.k}, {self.pool_factor}")
+        if self.method not in ("geometry", "topk"):
+            raise ValueError(f"method must be 'geometry' or 'topk', got {self.method!r}")
+        if not 0.0 <= self.outlier_percentile <= 100.0:
+            raise ValueError(f"outlier_percentile must be in [0, 100], got {self.outlier_percentile}")
+        if self.l_scale is not None and self.l_scale <= 0:
+            raise ValueError(f"l_scale must be positive metres or None, got {self.l_scale}")
+
+
+def geometric_median(points: ArrayLike, iterations: int = 100, tol: float = 1e-7) -> NDArray[np.float64]:
+    """Geometric median (Weiszfeld) of points (n, d): the point minimising the sum of distances."""
+    P = np.asarray(points, float)
+    m = np.median(P, axis=0)
+    for _ in range(iterations):
+        d = np.linalg.norm(P - m, axis=1)
+        if np.any(d < tol):
+            # Weiszfeld is undefined at a data point; the coordinate-wise start may sit on one.
+            keep = d >= tol
+            if not keep.any():
+                return m
+            w = 1.0 / d[keep]
+            step = (P[keep] * w[:, None]).sum(0) / w.sum()
+        else:
+            w = 1.0 / d
+            step = (P * w[:, None]).sum(0) / w.sum()
+        if np.linalg.norm(step - m) < tol:
+            return step
+        m = step
+    return m
+
+
+def select_references(
+    similarity: ArrayLike, T_w: ArrayLike, config: RetrievalConfig | None = None
+) -> NDArray[np.int64]:
+    """Indices (<= k,) of the reference images for one query, best match first.
+
+    ``similarity`` (M,) scores every database image; ``T_w`` (M, 4, 4) are their ``T_wi``.
+    ``geometry`` follows paper Alg. 1: pool = top-N (N = pool_factor * k) by similarity;
+    spatial outliers = distance to the pool's geometric median camera position above the
+    ``outlier_percentile`` percentile (the best match is always kept); then greedy
+    farthest-point selection maximising ``min_s [lambda_pos |t_c - t_s| / L_scale +
+    lambda_ang angle(v_c, v_s) / pi] + lambda_sim S_norm(c)`` with ``v`` the optical axis and
+    ``S_norm`` the similarity min-max normalised over the valid pool. The remaining
+    indices come in selection order. ``topk`` returns the k most similar, in order.
+    """
+    config = config or RetrievalConfig()
+    s = np.asarray(similarity, float)
+    T = np.asarray(T_w, float)
+    if s.ndim != 1 or T.shape != (len(s), 4, 4):
+        raise ValueError(f"need similarity (M,) and T_w (M, 4, 4); got {s.shape} and {T.shape}")
+    if not np.all(np.isfinite(s)):
+        raise ValueError("similarity contains NaN or inf")
+    if len(s) == 0:
+        return np.zeros(0, np.int64)
+    order = np.argsort(-s, kind="stable")
+    if config.method == "topk":
+        return order[: config.k].astype(np.int64)
+
+    pool = order[: config.pool_factor * config.k]  # pool[0] is the best match
+    t = T[pool, :3, 3]
+    d = np.linalg.norm(t - geometric_median(t), axis=1)
+    tau = np.percentile(d, config.outlier_percentile)
+    valid_mask = d <= tau
+    valid_mask[0] = True  # the best match is always kept
+    valid = pool[valid_mask]  # still sorted by similarity, best first
+    if len(valid) == 1:
+        return valid.astype(np.int64)
+
+    sv = s[valid]
+    span = sv.max() - sv.min()
+    s_norm = (sv - sv.min()) / span if span > 0 else np.ones_like(sv)
+    tv = T[valid, :3, 3]
+    axes = T[valid, :3, 2]
+    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    dist = np.linalg.norm(tv[:, None] - tv[None], axis=2)
+    if config.l_scale is not None:
+        l_scale = config.l_scale
+    else:
+        l_scale = float(dist.max()) if dist.max() > 0 else 1.0
+    ang = np.arccos(np.clip(axes @ axes.T, -1.0, 1.0))
+    delta = config.lambda_pos * dist / l_scale + config.lambda_ang * ang / np.pi
+
+    selected = [0]
+    d_geo = delta[0].copy()  # min over the selected set, updated incrementally
+    available = np.ones(len(valid), bool)
+    available[0] = False
+    while len(selected) < min(config.k, len(valid)):
+        score = np.where(available, d_geo + config.lambda_sim * s_norm, -np.inf)
+        c = int(np.argmax(score))  # ties -> the more similar candidate
+        selected.append(c)
+        available[c] = False
+        d_geo = np.minimum(d_geo, delta[c])
+    return valid[selected].astype(np.int64)
