@@ -1,0 +1,132 @@
+"""Classical backbone on analytic views of a textured room corner (exact poses and depth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from backbone_synthetic import corner_views, render
+
+from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
+from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, FeatureCache, make_backbone
+from vgpnav_env.perception.backbones.classical import link_scales, match_descriptors
+
+CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
+K_REFS = 5
+
+
+@pytest.fixture(scope="module")
+def scene():
+    T_wq, T_wi, planes = corner_views(CAMERA, K_REFS, seed=3)
+    query, query_depth = render(planes, CAMERA, T_wq)
+    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    return {"T_qi": invert_pose(T_wq) @ T_wi, "query": query, "depth": query_depth, "refs": refs}
+
+
+@pytest.fixture(scope="module")
+def result(scene):
+    backbone = ClassicalBackbone()
+    out = backbone(scene["query"], scene["refs"], CAMERA, reference_keys=list(range(K_REFS)))
+    return backbone, out
+
+
+def direction_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def test_relative_poses_are_accurate(scene, result):
+    _, out = result
+    assert out.name == "classical" and out.scale == "median_query_depth"
+    assert out.T_qi.shape == (K_REFS, 4, 4)
+    assert np.all(out.confidence > 0.5) and np.all(out.n_matches >= 50)
+    for i in range(K_REFS):
+        rot_err = np.degrees(rotation_angle(out.T_qi[i, :3, :3], scene["T_qi"][i, :3, :3]))
+        dir_err = direction_error_deg(out.T_qi[i, :3, 3], scene["T_qi"][i, :3, 3])
+        assert rot_err < 0.5, (i, rot_err)
+        assert dir_err < 2.0, (i, dir_err)
+    np.testing.assert_allclose(out.T_iq @ out.T_qi, np.tile(np.eye(4), (K_REFS, 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(out.R_iq, np.swapaxes(out.T_qi[:, :3, :3], 1, 2))
+
+
+def test_one_common_scale_across_references(scene, result):
+    _, out = result
+    assert out.scale_valid.all()
+    ratios = np.linalg.norm(out.T_qi[:, :3, 3], axis=1) / np.linalg.norm(scene["T_qi"][:, :3, 3], axis=1)
+    assert np.all(np.abs(ratios / np.median(ratios) - 1.0) < 0.05), ratios
+
+
+def test_plane_sweep_depth_matches_truth_at_the_common_scale(scene, result):
+    _, out = result
+    assert out.query_depth.shape == (240, 320) and out.query_depth.dtype == np.float32
+    assert out.query_depth_confidence.min() >= 0 and out.query_depth_confidence.max() <= 1
+    scale = np.median(
+        np.linalg.norm(out.T_qi[:, :3, 3], axis=1) / np.linalg.norm(scene["T_qi"][:, :3, 3], axis=1)
+    )
+    confident = out.query_depth_confidence > 0.5
+    assert confident.mean() > 0.3
+    rel = np.abs(out.query_depth[confident] / scale - scene["depth"][confident]) / scene["depth"][confident]
+    assert np.median(rel) < 0.05
+    # The scale convention: the confident dense depths have a median near 1.
+    assert 0.7 < np.median(out.query_depth[confident]) < 1.4
+
+
+def test_reference_features_are_cached_by_key(scene, result):
+    backbone, out = result
+    assert len(backbone.feature_cache) == K_REFS
+    again = backbone(scene["query"], scene["refs"], CAMERA, reference_keys=list(range(K_REFS)))
+    np.testing.assert_allclose(again.T_qi, out.T_qi, atol=1e-6)
+    cache = FeatureCache(max_items=2)
+    for key in "abc":
+        cache.put(key, backbone.feature_cache.get(0))
+    assert len(cache) == 2 and "a" not in cache and "c" in cache
+
+
+def test_black_query_and_unrelated_reference_fail_softly(scene):
+    backbone = make_backbone("classical")
+    black = np.zeros_like(scene["query"])
+    out = backbone(black, scene["refs"][:3], CAMERA)
+    assert np.all(out.confidence == 0) and not out.scale_valid.any()
+    assert np.all(out.query_depth_confidence == 0)
+    noise = np.random.default_rng(0).integers(0, 256, scene["query"].shape, dtype=np.uint8)
+    out = backbone(scene["query"], [noise, scene["refs"][0]], CAMERA)
+    assert out.confidence[0] == 0 and out.confidence[1] > 0.5
+    out = backbone(scene["query"], [], CAMERA)
+    assert out.T_qi.shape == (0, 4, 4) and np.all(out.query_depth_confidence == 0)
+
+
+def test_bad_inputs_are_rejected(scene):
+    backbone = ClassicalBackbone()
+    with pytest.raises(ValueError, match="uint8"):
+        backbone(scene["query"].astype(np.float32), scene["refs"], CAMERA)
+    with pytest.raises(ValueError, match="reference_keys"):
+        backbone(scene["query"], scene["refs"], CAMERA, reference_keys=[0])
+    with pytest.raises(ValueError, match="ratio"):
+        ClassicalConfig(ratio=1.5)
+
+
+def test_matching_and_scale_linking_units():
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((50, 128)).astype(np.float32)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    perm = rng.permutation(50)
+    matches = match_descriptors(a, a[perm], ratio=0.8, mutual=True)
+    assert len(matches) == 50
+    np.testing.assert_array_equal(perm[matches[:, 1]], matches[:, 0])
+
+    class Pair:
+        def __init__(self, index, depth, n_inliers):
+            self.query_index, self.depth, self.n_inliers = (
+                np.asarray(index),
+                np.asarray(depth, float),
+                n_inliers,
+            )
+
+    depth = rng.uniform(1, 3, 30)
+    pairs = [Pair(np.arange(20), depth[:20] * 2.0, 100), Pair(np.arange(10, 30), depth[10:] * 0.5, 90), None]
+    pairs.append(Pair(np.arange(40, 60), np.ones(20), 300))
+    scales, linked = link_scales(pairs, min_common=8)
+    np.testing.assert_array_equal(linked, [False, False, False, True])
+    pairs[3] = Pair(np.arange(40, 50), np.ones(10), 10)
+    scales, linked = link_scales(pairs, min_common=8)
+    np.testing.assert_array_equal(linked, [True, True, False, False])
+    assert scales[0] * 2.0 == pytest.approx(scales[1] * 0.5)

@@ -1,0 +1,142 @@
+"""The feed-forward reconstruction backbone contract (DESIGN.md, Perception step 3).
+
+A backbone turns a query image and ``k`` reference images (same pinhole camera) into
+
+- ``T_qi`` (k, 4, 4): the pose of reference ``i`` in the QUERY camera frame (OpenCV axes),
+  i.e. ``T_qi`` maps reference-camera coordinates into query-camera coordinates. Rotations
+  are metric (exact up to estimation noise); translations share ONE unknown scale with the
+  query depth -- the backbone's own normalised scale (each backbone documents its choice);
+- ``confidence`` (k,) in [0, 1], 0 for a failed pair; ``n_matches`` (k,) int;
+- ``query_depth`` (H, W) float32 z-depth at that same scale (0 where unknown) with
+  ``query_depth_confidence`` (H, W) in [0, 1]; optional ``reference_depths`` (k, H, W).
+
+Backbones never see database poses or ground-truth depth; only backbones whose class
+attribute ``privileged`` is True read the :class:`Privileged` bundle.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import PinholeCamera, invert_pose
+
+
+@dataclass(frozen=True)
+class Privileged:
+    """Ground truth for privileged backbones only: world poses (camera -> world) and metric z-depth."""
+
+    T_wq: NDArray[np.float64]
+    T_wi: NDArray[np.float64]
+    query_depth: NDArray[np.floating]
+    reference_depths: NDArray[np.floating] | None = None
+
+
+@dataclass
+class BackboneOutput:
+    """What a backbone returns for one query and ``k`` references (see the module docstring).
+
+    ``scale_valid`` (k,) is False for a pair whose translation *direction* is estimated but
+    whose translation *length* could not be tied to the common scale (its translation is then
+    a unit-consistent guess; rotation and direction stay usable). ``scale`` names the
+    backbone's normalisation of the unknown scale, e.g. ``"median_query_depth"``.
+    """
+
+    T_qi: NDArray[np.float64]
+    confidence: NDArray[np.float64]
+    n_matches: NDArray[np.int64]
+    query_depth: NDArray[np.float32]
+    query_depth_confidence: NDArray[np.float32]
+    name: str
+    scale: str
+    reference_depths: NDArray[np.float32] | None = None
+    scale_valid: NDArray[np.bool_] | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        k = len(self.T_qi)
+        if self.T_qi.shape != (k, 4, 4):
+            raise ValueError(f"T_qi must have shape (k, 4, 4), got {self.T_qi.shape}")
+        if self.confidence.shape != (k,) or self.n_matches.shape != (k,):
+            raise ValueError(
+                f"confidence and n_matches must have shape ({k},), got "
+                f"{self.confidence.shape} and {self.n_matches.shape}"
+            )
+        if self.query_depth.shape != self.query_depth_confidence.shape or self.query_depth.ndim != 2:
+            raise ValueError(
+                f"query_depth and its confidence must be the same (H, W) shape, got "
+                f"{self.query_depth.shape} and {self.query_depth_confidence.shape}"
+            )
+        if self.scale_valid is None:
+            self.scale_valid = self.confidence > 0
+        if self.scale_valid.shape != (k,):
+            raise ValueError(f"scale_valid must have shape ({k},), got {self.scale_valid.shape}")
+        if self.reference_depths is not None and self.reference_depths.shape != (k, *self.query_depth.shape):
+            raise ValueError(
+                f"reference_depths must have shape {(k, *self.query_depth.shape)}, "
+                f"got {self.reference_depths.shape}"
+            )
+
+    @property
+    def k(self) -> int:
+        return len(self.T_qi)
+
+    @property
+    def T_iq(self) -> NDArray[np.float64]:
+        """(k, 4, 4) pose of the query in each reference frame (maps query coords into reference i)."""
+        return invert_pose(self.T_qi)
+
+    @property
+    def R_iq(self) -> NDArray[np.float64]:
+        """(k, 3, 3) rotations mapping query-frame vectors into reference frames."""
+        return np.swapaxes(self.T_qi[:, :3, :3], -1, -2)
+
+    @property
+    def R_qi(self) -> NDArray[np.float64]:
+        """(k, 3, 3) rotations mapping reference-frame vectors into the query frame."""
+        return self.T_qi[:, :3, :3]
+
+
+class Backbone(ABC):
+    """A feed-forward reconstruction backbone; subclasses set ``name`` and ``privileged``."""
+
+    name: str = "backbone"
+    privileged: bool = False
+
+    @abstractmethod
+    def __call__(
+        self,
+        query: NDArray[np.uint8],
+        references: Sequence[NDArray[np.uint8]],
+        camera: PinholeCamera,
+        privileged: Privileged | None = None,
+        reference_keys: Sequence[Hashable] | None = None,
+    ) -> BackboneOutput:
+        """Reconstruct the query and references (see the module docstring for frames and scale).
+
+        ``reference_keys`` are optional stable identifiers of the references (e.g. database
+        indices) a backbone may use to cache per-image work; backbones that cache nothing ignore them.
+        """
+
+
+def check_inputs(
+    query: NDArray[np.uint8],
+    references: Sequence[NDArray[np.uint8]],
+    camera: PinholeCamera,
+    reference_keys: Sequence[Hashable] | None = None,
+) -> None:
+    """Raise a clear ValueError unless the images are uint8 (H, W, 3) matching ``camera``."""
+    expected = (camera.height, camera.width, 3)
+    for what, image in [("query", query), *((f"reference {i}", r) for i, r in enumerate(references))]:
+        image = np.asarray(image)
+        if image.shape != expected or image.dtype != np.uint8:
+            raise ValueError(
+                f"{what} image must be uint8 with shape {expected} (camera size), "
+                f"got {image.dtype} {image.shape}"
+            )
+    if reference_keys is not None and len(reference_keys) != len(references):
+        raise ValueError(f"got {len(reference_keys)} reference_keys for {len(references)} references")

@@ -1,0 +1,459 @@
+"""Classical feed-forward backbone from pixels only: RootSIFT, 5-point LO-RANSAC, plane sweep.
+
+Per (query, reference i) pair: RootSIFT features (cached per reference key), mutual nearest
+neighbours with Lowe's ratio test, poselib's 5-point LO-RANSAC relative pose with known
+intrinsics, and triangulation of the inliers. Pair scales are tied together through query
+keypoints seen in several pairs (their depths must agree), then the shared scale is fixed by
+
+    scale convention ``"median_query_depth"``: the median depth of the triangulated query
+    keypoints is 1.
+
+A dense query depth comes from an NCC plane sweep over inverse-depth planes at reduced
+resolution against the best references, with a confidence from matching score, uniqueness,
+texture and visibility.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import poselib
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged, check_inputs
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ClassicalConfig:
+    """Knobs of the classical backbone (pixels are full-resolution unless stated)."""
+
+    max_keypoints: int = 1500
+    sift_contrast_threshold: float = 0.03
+    ratio: float = 0.8
+    mutual: bool = True
+    max_epipolar_error: float = 1.0
+    ransac_min_iterations: int = 200
+    min_inliers: int = 50
+    full_confidence_inliers: int = 200
+    full_confidence_parallax_deg: float = 2.0
+    min_parallax_deg: float = 0.5
+    min_common_points: int = 8
+    sweep_scale: float = 0.5
+    sweep_planes: int = 64
+    sweep_candidates: int = 5
+    sweep_references: int = 3
+    ncc_window: int = 7
+    depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
+    depth_range_margin: tuple[float, float] = (0.7, 1.5)
+    min_ncc: float = 0.4
+    full_confidence_margin: float = 0.15
+    min_texture_std: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.ratio <= 1.0:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
+        if self.min_inliers < 5:
+            raise ValueError(f"min_inliers must be >= 5 (5-point solver), got {self.min_inliers}")
+        if not 0.0 < self.sweep_scale <= 1.0:
+            raise ValueError(f"sweep_scale must be in (0, 1], got {self.sweep_scale}")
+        if self.sweep_planes < 3 or self.ncc_window < 3 or self.ncc_window % 2 == 0:
+            raise ValueError("sweep_planes must be >= 3 and ncc_window an odd number >= 3")
+        if self.sweep_references < 1 or self.sweep_candidates < self.sweep_references:
+            raise ValueError("need 1 <= sweep_references <= sweep_candidates")
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoint pixels (n, 2) and unit-norm RootSIFT descriptors (n, 128) of one image."""
+
+    keypoints: NDArray[np.float64]
+    descriptors: NDArray[np.float32]
+
+
+class FeatureCache:
+    """Least-recently-used store of :class:`Features` by a stable key (e.g. database index)."""
+
+    def __init__(self, max_items: int = 256) -> None:
+        if max_items < 1:
+            raise ValueError(f"max_items must be >= 1, got {max_items}")
+        self.max_items = max_items
+        self._items: OrderedDict[Hashable, Features] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._items
+
+    def get(self, key: Hashable) -> Features | None:
+        features = self._items.get(key)
+        if features is not None:
+            self._items.move_to_end(key)
+        return features
+
+    def put(self, key: Hashable, features: Features) -> None:
+        self._items[key] = features
+        self._items.move_to_end(key)
+        while len(self._items) > self.max_items:
+            self._items.popitem(last=False)
+
+    def clear(self) -> None:
+        self._items.clear()
+
+
+@dataclass(frozen=True)
+class PairGeometry:
+    """Two-view result for (query, reference): ``x_ref = R x_query + t`` with unit ``t``."""
+
+    R: NDArray[np.float64]
+    t: NDArray[np.float64]
+    n_matches: int
+    n_inliers: int
+    confidence: float
+    query_index: NDArray[np.int64]
+    depth: NDArray[np.float64]
+
+
+def grayscale(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+
+
+def match_descriptors(
+    a: NDArray[np.float32], b: NDArray[np.float32], ratio: float, mutual: bool
+) -> NDArray[np.int64]:
+    """Index pairs (m, 2) of ratio-test (and optionally mutual) nearest neighbours of unit descriptors."""
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    sim = a @ b.T
+    rows = np.arange(len(a))
+    best = sim.argmax(axis=1)
+    best_for_column = sim.argmax(axis=0)
+    s1 = sim[rows, best]
+    sim[rows, best] = -np.inf
+    s2 = sim.max(axis=1)
+    # L2 distance of unit vectors: d^2 = 2 - 2 s.
+    d1 = np.sqrt(np.maximum(2.0 - 2.0 * s1, 0.0))
+    d2 = np.sqrt(np.maximum(2.0 - 2.0 * s2, 0.0))
+    keep = d1 < ratio * d2
+    if mutual:
+        keep &= best_for_column[best] == rows
+    return np.stack([rows[keep], best[keep]], axis=1)
+
+
+def triangulate_query_depth(
+    x_q: NDArray[np.float64], x_r: NDArray[np.float64], R: NDArray[np.float64], t: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Query z-depth, parallax (radians) and cheirality of normalised rays (n, 3), ``x_r ~ R x_q d + t``."""
+    Rx = x_q @ R.T
+    a = np.cross(x_r, Rx)
+    b = np.cross(x_r, np.broadcast_to(t, x_r.shape))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = -np.einsum("ij,ij->i", a, b) / np.einsum("ij,ij->i", a, a)
+    X = x_q * depth[:, None]
+    centre_r = -R.T @ t
+    ray_r = X - centre_r
+    cos = np.einsum("ij,ij->i", X, ray_r) / (np.linalg.norm(X, axis=1) * np.linalg.norm(ray_r, axis=1))
+    parallax = np.arccos(np.clip(cos, -1.0, 1.0))
+    z_r = (X @ R.T + t)[:, 2]
+    valid = np.isfinite(depth) & (depth > 0) & (z_r > 0)
+    return depth, parallax, valid
+
+
+def link_scales(
+    pairs: list[PairGeometry | None], min_common: int
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Relative scale per pair so that shared query keypoints get equal depths; (k,), linked mask.
+
+    Pair scales are solved in the log domain by weighted least squares over the connected
+    component of the pair with most inliers; pairs outside it are not linked.
+    """
+    k = len(pairs)
+    scales = np.ones(k)
+    linked = np.zeros(k, bool)
+    usable = [i for i, p in enumerate(pairs) if p is not None and len(p.query_index) > 0]
+    if not usable:
+        return scales, linked
+    edges: list[tuple[int, int, float, float]] = []
+    for a_pos, i in enumerate(usable):
+        for j in usable[a_pos + 1 :]:
+            pi, pj = pairs[i], pairs[j]
+            common, ia, ja = np.intersect1d(pi.query_index, pj.query_index, return_indices=True)
+            if len(common) < min_common:
+                continue
+            # depth_i * s_i = depth_j * s_j  ->  log s_j - log s_i = log median(depth_i / depth_j)
+            edges.append((i, j, float(np.log(np.median(pi.depth[ia] / pj.depth[ja]))), float(len(common))))
+    anchor = max(usable, key=lambda i: pairs[i].n_inliers)
+    component = {anchor}
+    grew = True
+    while grew:
+        grew = False
+        for i, j, _, _ in edges:
+            if (i in component) != (j in component):
+                component |= {i, j}
+                grew = True
+    nodes = sorted(component)
+    pos = {n: p for p, n in enumerate(nodes)}
+    rows = [e for e in edges if e[0] in component]
+    A = np.zeros((len(rows) + 1, len(nodes)))
+    y = np.zeros(len(rows) + 1)
+    for r, (i, j, log_ratio, weight) in enumerate(rows):
+        w = np.sqrt(weight)
+        A[r, pos[j]], A[r, pos[i]], y[r] = w, -w, w * log_ratio
+    A[-1, pos[anchor]] = 1e3
+    log_s = np.linalg.lstsq(A, y, rcond=None)[0]
+    scales[nodes] = np.exp(log_s)
+    linked[nodes] = True
+    return scales, linked
+
+
+class ClassicalBackbone(Backbone):
+    """Pixels-only backbone (no weights); scale convention: median triangulated query depth = 1.
+
+    Pass ``reference_keys`` (e.g. database indices) to reuse reference features across calls
+    through ``feature_cache``.
+    """
+
+    name = "classical"
+    privileged = False
+
+    def __init__(
+        self, config: ClassicalConfig | None = None, feature_cache: FeatureCache | None = None
+    ) -> None:
+        self.config = config or ClassicalConfig()
+        self.feature_cache = feature_cache if feature_cache is not None else FeatureCache()
+        self._sift = cv2.SIFT_create(
+            nfeatures=self.config.max_keypoints, contrastThreshold=self.config.sift_contrast_threshold
+        )
+
+    def extract(self, image: NDArray[np.uint8]) -> Features:
+        """RootSIFT keypoints of an RGB image (L1-normalise, square root: unit L2 norm)."""
+        keypoints, desc = self._sift.detectAndCompute(grayscale(image), None)
+        if desc is None or len(keypoints) == 0:
+            return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+        desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        return Features(np.array([kp.pt for kp in keypoints], float), desc)
+
+    def features(self, image: NDArray[np.uint8], key: Hashable | None) -> Features:
+        if key is None:
+            return self.extract(image)
+        cached = self.feature_cache.get(key)
+        if cached is None:
+            cached = self.extract(image)
+            self.feature_cache.put(key, cached)
+        return cached
+
+    def relative_pose(
+        self, fq: Features, fr: Features, camera: PinholeCamera
+    ) -> tuple[PairGeometry | None, int]:
+        """Two-view geometry of one pair; None (with the match count) when it fails."""
+        cfg = self.config
+        matches = match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
+        if len(matches) < cfg.min_inliers:
+            return None, len(matches)
+        K = camera.K
+        cam = {
+            "model": "PINHOLE",
+            "width": camera.width,
+            "height": camera.height,
+            "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+        }
+        pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
+        pose, info = poselib.estimate_relative_pose(
+            pq,
+            pr,
+            cam,
+            cam,
+            {"max_epipolar_error": cfg.max_epipolar_error, "min_iterations": cfg.ransac_min_iterations},
+            {},
+        )
+        inliers = np.asarray(info["inliers"], bool)
+        n_inliers = int(inliers.sum())
+        if n_inliers < cfg.min_inliers:
+            return None, len(matches)
+        R, t = np.asarray(pose.R), np.asarray(pose.t)
+        t = t / np.linalg.norm(t)
+        K_inv = np.linalg.inv(K)
+        x_q = np.c_[pq[inliers], np.ones(n_inliers)] @ K_inv.T
+        x_r = np.c_[pr[inliers], np.ones(n_inliers)] @ K_inv.T
+        depth, parallax, valid = triangulate_query_depth(x_q, x_r, R, t)
+        good = valid & (parallax > np.deg2rad(cfg.min_parallax_deg))
+        median_parallax = float(np.degrees(np.median(parallax[valid]))) if valid.any() else 0.0
+        support = min(1.0, n_inliers / cfg.full_confidence_inliers) * np.sqrt(n_inliers / len(matches))
+        geometry = float(np.clip(median_parallax / cfg.full_confidence_parallax_deg, 0.1, 1.0))
+        return (
+            PairGeometry(
+                R=R,
+                t=t,
+                n_matches=len(matches),
+                n_inliers=n_inliers,
+                confidence=float(support * geometry),
+                query_index=matches[:, 0][inliers][good],
+                depth=depth[good],
+            ),
+            len(matches),
+        )
+
+    def __call__(
+        self,
+        query: NDArray[np.uint8],
+        references: Sequence[NDArray[np.uint8]],
+        camera: PinholeCamera,
+        privileged: Privileged | None = None,
+        reference_keys: Sequence[Hashable] | None = None,
+    ) -> BackboneOutput:
+        check_inputs(query, references, camera, reference_keys)
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        k = len(references)
+        keys = list(reference_keys) if reference_keys is not None else [None] * k
+        fq = self.extract(query)
+        frefs = [self.features(ref, key) for ref, key in zip(references, keys, strict=True)]
+        timings["features"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        results = [self.relative_pose(fq, fr, camera) for fr in frefs]
+        pairs = [r[0] for r in results]
+        n_matches = np.array([r[1] for r in results], np.int64)
+        timings["two_view"] = time.perf_counter() - t0
+
+        scales, linked = link_scales(pairs, self.config.min_common_points)
+        keypoint_depths = [pairs[i].depth * scales[i] for i in range(k) if linked[i]]
+        norm = float(np.median(np.concatenate(keypoint_depths))) if keypoint_depths else 1.0
+        scales = scales / norm
+        T_iq = np.tile(np.eye(4), (k, 1, 1))
+        confidence = np.zeros(k)
+        linked_baselines = [scales[i] for i in range(k) if linked[i]]
+        fallback = float(np.median(linked_baselines)) if linked_baselines else 1.0
+        for i, pair in enumerate(pairs):
+            if pair is None:
+                continue
+            T_iq[i] = make_pose(pair.R, pair.t * (scales[i] if linked[i] else fallback))
+            confidence[i] = pair.confidence
+        T_qi = invert_pose(T_iq)
+
+        t0 = time.perf_counter()
+        depth = np.zeros((camera.height, camera.width), np.float32)
+        depth_conf = np.zeros_like(depth)
+        sweep_ids = self.select_sweep_references(confidence, linked, T_iq)
+        if sweep_ids and keypoint_depths:
+            sparse = np.concatenate(keypoint_depths) / norm
+            depth, depth_conf = self.plane_sweep(
+                query, [references[i] for i in sweep_ids], T_iq[sweep_ids], camera, sparse
+            )
+        timings["plane_sweep"] = time.perf_counter() - t0
+        if not confidence.any():
+            log.debug("classical backbone: no reference pair passed (matches %s)", n_matches.tolist())
+        return BackboneOutput(
+            T_qi=T_qi,
+            confidence=confidence,
+            n_matches=n_matches,
+            query_depth=depth,
+            query_depth_confidence=depth_conf,
+            name=self.name,
+            scale="median_query_depth",
+            scale_valid=linked & (confidence > 0),
+            timings=timings,
+        )
+
+    def select_sweep_references(
+        self, confidence: NDArray[np.float64], linked: NDArray[np.bool_], T_iq: NDArray[np.float64]
+    ) -> list[int]:
+        """Indices of the widest-baseline references among the most confident scale-linked ones."""
+        cfg = self.config
+        candidates = [i for i in np.argsort(-confidence) if confidence[i] > 0 and linked[i]]
+        candidates = candidates[: cfg.sweep_candidates]
+        baselines = {i: float(np.linalg.norm(T_iq[i, :3, 3])) for i in candidates}
+        return sorted(candidates, key=lambda i: -baselines[i])[: cfg.sweep_references]
+
+    def plane_sweep(
+        self,
+        query: NDArray[np.uint8],
+        references: list[NDArray[np.uint8]],
+        T_iq: NDArray[np.float64],
+        camera: PinholeCamera,
+        sparse_depths: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Query depth (H, W) and confidence from an NCC sweep of fronto-parallel inverse-depth planes.
+
+        A plane ``z = d`` in the query frame induces ``x_i ~ K (R + t n^T / d) K^-1 x_q``; each
+        reference is warped onto the query per plane, scored by windowed NCC (NaN where the
+        reference does not see the pixel) and averaged over the references that do.
+        """
+        cfg = self.config
+        w = max(8, round(camera.width * cfg.sweep_scale))
+        h = max(8, round(camera.height * cfg.sweep_scale))
+        small = camera.resized(w, h)
+        K, K_inv = small.K, np.linalg.inv(small.K)
+        window = (cfg.ncc_window, cfg.ncc_window)
+
+        def prepare(image: NDArray[np.uint8]) -> NDArray[np.float32]:
+            return cv2.resize(grayscale(image), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+        q = prepare(query)
+        mu_q = cv2.boxFilter(q, -1, window)
+        var_q = np.maximum(cv2.boxFilter(q * q, -1, window) - mu_q * mu_q, 0.0)
+        refs = [prepare(r) for r in references]
+
+        lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
+        d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
+        inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.sweep_planes)
+        n = np.array([0.0, 0.0, 1.0])
+        scores = np.empty((cfg.sweep_planes, h, w), np.float32)
+        for p, inv_d in enumerate(inv_depths):
+            total = np.zeros((h, w), np.float32)
+            count = np.zeros((h, w), np.float32)
+            for ref, T in zip(refs, T_iq, strict=True):
+                H = K @ (T[:3, :3] + np.outer(T[:3, 3], n) * inv_d) @ K_inv
+                warped = cv2.warpPerspective(
+                    ref,
+                    H,
+                    (w, h),
+                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=float("nan"),
+                )
+                mu_w = cv2.boxFilter(warped, -1, window)
+                var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
+                cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
+                ncc = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
+                seen = np.isfinite(ncc)
+                total += np.where(seen, ncc, 0.0)
+                count += seen
+            with np.errstate(invalid="ignore"):
+                scores[p] = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+
+        visible = np.isfinite(scores).any(axis=0)
+        filled = np.where(np.isfinite(scores), scores, -1.0)
+        best = filled.argmax(axis=0)
+        rows, cols = np.indices((h, w))
+        s0 = filled[best, rows, cols]
+        prev = filled[np.maximum(best - 1, 0), rows, cols]
+        nxt = filled[np.minimum(best + 1, cfg.sweep_planes - 1), rows, cols]
+        curvature = prev + nxt - 2.0 * s0
+        interior = (best > 0) & (best < cfg.sweep_planes - 1) & (curvature < -1e-6)
+        offset = np.where(interior, 0.5 * (prev - nxt) / np.where(interior, curvature, 1.0), 0.0)
+        step = inv_depths[1] - inv_depths[0]
+        inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
+        depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
+
+        # Uniqueness: best score minus the best score outside a +-2 plane neighbourhood.
+        planes = np.arange(cfg.sweep_planes)[:, None, None]
+        far = np.abs(planes - best[None]) > 2
+        second = np.where(far, filled, -1.0).max(axis=0)
+        score_term = np.clip((s0 - cfg.min_ncc) / (1.0 - cfg.min_ncc), 0.0, 1.0)
+        margin_term = np.clip((s0 - second) / cfg.full_confidence_margin, 0.0, 1.0)
+        texture_term = np.clip(np.sqrt(var_q) / cfg.min_texture_std - 1.0, 0.0, 1.0)
+        conf_small = (score_term * margin_term * texture_term * visible * interior).astype(np.float32)
+
+        depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+        conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+        return depth, np.clip(conf, 0.0, 1.0)
