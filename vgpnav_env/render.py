@@ -1,0 +1,273 @@
+"""Renderer backends behind one camera contract.
+
+``renderer.render(T_wc) -> Frame``: ``T_wc`` is an OpenCV camera pose (camera -> world,
+x right, y down, z forward) and the renderer's ``PinholeCamera`` fixes size and fovy.
+``Frame.rgb`` is uint8 (H, W, 3); ``Frame.depth`` is float32 (H, W) metric z-depth along the
+optical axis, ``np.inf`` where nothing is hit.
+
+- ``MujocoRenderer`` (default): one OpenGL context + ``MjrContext`` reused for every frame;
+  RGB and depth come from the same draw. Geom group 3 (collision parts, the robot) is hidden.
+- ``PyrenderRenderer``: pyrender over the scene's trimesh meshes, for mesh scenes whose
+  materials MuJoCo cannot show (several or PBR materials); pyrender is imported lazily.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import mujoco
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from vgpnav_env.geometry import PinholeCamera, mujoco_from_opencv
+from vgpnav_env.scenes.model import COLLISION_GROUP, RENDER_CAMERA, build_model, lighting_for
+from vgpnav_env.scenes.scene import Scene
+
+logger = logging.getLogger(__name__)
+
+BACKENDS = ("mujoco", "pyrender")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One rendered view: ``rgb`` uint8 (H, W, 3), ``depth`` float32 (H, W) z-depth (inf = no hit)."""
+
+    rgb: NDArray[np.uint8]
+    depth: NDArray[np.float32]
+
+
+class Renderer(Protocol):
+    camera: PinholeCamera
+
+    def render(self, T_wc: ArrayLike) -> Frame: ...
+
+    def close(self) -> None: ...
+
+
+def _check_pose(T_wc: ArrayLike) -> NDArray[np.float64]:
+    T = np.asarray(T_wc, float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"T_wc must be a finite 4x4 camera->world pose, got shape {T.shape}")
+    return T
+
+
+class MujocoRenderer:
+    """Renders a MuJoCo model (or a ``Scene``, compiled with ``build_model``) from OpenCV poses.
+
+    ``data``: an ``MjData`` of the model whose state is drawn (e.g. the environment's robot);
+    by default a private one (static scene). The model must contain ``RENDER_CAMERA``; its
+    pose and fovy are set on every call, so several renderers may share one model.
+    """
+
+    def __init__(self, model_or_scene: mujoco.MjModel | Scene, camera: PinholeCamera, *, data=None) -> None:
+        if isinstance(model_or_scene, Scene):
+            size = (max(640, camera.width), max(480, camera.height))
+            model = build_model(model_or_scene, max_image_size=size)
+        elif isinstance(model_or_scene, mujoco.MjModel):
+            model = model_or_scene
+        else:
+            raise TypeError(
+                f"MujocoRenderer needs a mujoco.MjModel or a Scene, got {type(model_or_scene).__name__}"
+            )
+        off = (model.vis.global_.offwidth, model.vis.global_.offheight)
+        if camera.width > off[0] or camera.height > off[1]:
+            raise ValueError(
+                f"image {camera.width}x{camera.height} exceeds the model's offscreen buffer "
+                f"{off[0]}x{off[1]}; build the model with a larger max_image_size"
+            )
+        self.camera = camera
+        self.model = model
+        self.data = data if data is not None else mujoco.MjData(model)
+        if not isinstance(self.data, mujoco.MjData):
+            raise TypeError(f"data must be a mujoco.MjData, got {type(self.data).__name__}")
+        self._cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, RENDER_CAMERA)
+        if self._cam_id < 0:
+            raise ValueError(
+                f"model has no camera named {RENDER_CAMERA!r} (build it with vgpnav_env.scenes.model)"
+            )
+        if data is None:
+            mujoco.mj_kinematics(model, self.data)
+            mujoco.mj_camlight(model, self.data)  # world light directions; without it lights are dark
+        self._gl = mujoco.GLContext(off[0], off[1])
+        self._gl.make_current()
+        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._scene = mujoco.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
+        self._option = mujoco.MjvOption()
+        self._option.geomgroup[:] = 0
+        self._option.geomgroup[:COLLISION_GROUP] = 1
+        self._mjcam = mujoco.MjvCamera()
+        self._mjcam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._mjcam.fixedcamid = self._cam_id
+        self._rect = mujoco.MjrRect(0, 0, camera.width, camera.height)
+        self._rgb = np.empty((camera.height, camera.width, 3), np.uint8)
+        self._zbuf = np.empty((camera.height, camera.width), np.float32)
+
+    def _draw(self, T_wc: ArrayLike, data) -> None:
+        if self._ctx is None:
+            raise RuntimeError("render called after close()")
+        T = _check_pose(T_wc)
+        data = self.data if data is None else data
+        R_mj = mujoco_from_opencv(T[:3, :3])
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, R_mj.reshape(-1))
+        m, c = self.model, self._cam_id
+        m.cam_pos[c] = T[:3, 3]
+        m.cam_quat[c] = quat
+        m.cam_fovy[c] = np.degrees(self.camera.fovy)
+        # The camera lives in the world body: its world pose is its model pose.
+        data.cam_xpos[c] = T[:3, 3]
+        data.cam_xmat[c] = R_mj.reshape(-1)
+        self._gl.make_current()
+        mujoco.mjv_updateScene(
+            m, data, self._option, None, self._mjcam, mujoco.mjtCatBit.mjCAT_ALL, self._scene
+        )
+        mujoco.mjr_render(self._rect, self._scene, self._ctx)
+
+    def _depth_from_buffer(self) -> NDArray[np.float32]:
+        # Reverse-Z depth buffer (mjDEPTH_ZEROFAR): 0 at the far plane, 1 at the near plane.
+        extent = self.model.stat.extent
+        near = np.float32(self.model.vis.map.znear * extent)
+        far = np.float32(self.model.vis.map.zfar * extent)
+        c = np.float32(-0.5) * (-(far + near) / (far - near)) - np.float32(0.5)
+        d = np.float32(-0.5) * (-(np.float32(2) * far * near) / (far - near))
+        z = self._zbuf.astype(np.float64)
+        with np.errstate(divide="ignore"):
+            depth = (float(d) / (z + float(c))).astype(np.float32)
+        depth[z <= 0.0] = np.inf
+        return depth
+
+    def render(self, T_wc: ArrayLike, data=None) -> Frame:
+        """RGB and z-depth from one draw; ``data`` overrides the renderer's ``MjData``."""
+        self._draw(T_wc, data)
+        mujoco.mjr_readPixels(self._rgb, self._zbuf, self._rect, self._ctx)
+        return Frame(np.flipud(self._rgb).copy(), np.flipud(self._depth_from_buffer()).copy())
+
+    def render_rgb(self, T_wc: ArrayLike, data=None) -> NDArray[np.uint8]:
+        self._draw(T_wc, data)
+        mujoco.mjr_readPixels(self._rgb, None, self._rect, self._ctx)
+        return np.flipud(self._rgb).copy()
+
+    def render_depth(self, T_wc: ArrayLike, data=None) -> NDArray[np.float32]:
+        self._draw(T_wc, data)
+        mujoco.mjr_readPixels(None, self._zbuf, self._rect, self._ctx)
+        return np.flipud(self._depth_from_buffer()).copy()
+
+    def close(self) -> None:
+        if self._ctx is not None:
+            self._gl.make_current()
+            self._ctx.free()
+            self._ctx = None
+            self._gl.free()
+
+    def __enter__(self) -> MujocoRenderer:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown may have torn GL down already
+            pass
+
+
+class PyrenderRenderer:
+    """pyrender backend over the scene's trimesh meshes with the same camera contract.
+
+    Materials: a mesh whose trimesh visual carries a PBR material (e.g. from a GLB) keeps it;
+    otherwise the ``SceneMesh.material`` (texture image, rgba) is used, as in MuJoCo. Lights
+    mirror the MuJoCo lighting preset (directional lights + ambient; the headlight is a
+    directional light attached to the camera), so colours roughly agree with MuJoCo.
+    """
+
+    def __init__(self, scene: Scene, camera: PinholeCamera) -> None:
+        import pyrender  # lazy: only this backend needs it
+
+        self.camera = camera
+        self._pyrender = pyrender
+        lighting = lighting_for(scene.lighting)
+        ambient = lighting.headlight_ambient + sum(light.ambient for light in lighting.lights)
+        self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.full(3, ambient))
+        for sm in scene.meshes:
+            self._scene.add(pyrender.Mesh.from_trimesh(sm.mesh, material=self._material(sm), smooth=False))
+        for light in lighting.lights:
+            self._add_directional(light.direction, light.diffuse)
+        K = camera.K
+        # pyrender maps (cx, cy) to window coordinates, where pixel centres sit at +0.5; K's
+        # principal point is in pixel indices (centre of pixel 0 = 0), hence the half-pixel shift.
+        cam = pyrender.IntrinsicsCamera(
+            fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5, znear=0.05, zfar=1000.0
+        )
+        self._cam_node = self._scene.add(cam, pose=np.eye(4))
+        head = pyrender.DirectionalLight(color=np.ones(3), intensity=np.pi * lighting.headlight_diffuse)
+        self._head_node = self._scene.add(head, pose=np.eye(4))
+        self._offscreen = pyrender.OffscreenRenderer(camera.width, camera.height)
+
+    def _material(self, sm):
+        from trimesh.visual.material import PBRMaterial
+
+        visual_material = getattr(sm.mesh.visual, "material", None)
+        if isinstance(visual_material, PBRMaterial) and sm.material.image is None:
+            return None  # from_trimesh converts the mesh's own PBR material
+        tex = None
+        if sm.material.image is not None:
+            tex = self._pyrender.Texture(
+                source=np.ascontiguousarray(sm.material.image), source_channels="RGB"
+            )
+        return self._pyrender.MetallicRoughnessMaterial(
+            baseColorFactor=np.asarray(sm.material.rgba, float),
+            baseColorTexture=tex,
+            metallicFactor=0.0,
+            roughnessFactor=1.0,
+        )
+
+    def _add_directional(self, direction, diffuse: float) -> None:
+        # pyrender lights shine along their node's -z; Lambertian scale 1/pi is undone by pi.
+        d = np.asarray(direction, float)
+        z = -d / np.linalg.norm(d)
+        x = np.cross([0.0, 0.0, 1.0], z) if abs(z[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+        x /= np.linalg.norm(x)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+        light = self._pyrender.DirectionalLight(color=np.ones(3), intensity=np.pi * diffuse)
+        self._scene.add(light, pose=pose)
+
+    def render(self, T_wc: ArrayLike) -> Frame:
+        if self._offscreen is None:
+            raise RuntimeError("render called after close()")
+        T = _check_pose(T_wc)
+        pose_gl = T.copy()
+        pose_gl[:3, :3] = mujoco_from_opencv(T[:3, :3])  # OpenGL camera axes = MuJoCo camera axes
+        self._scene.set_pose(self._cam_node, pose_gl)
+        self._scene.set_pose(self._head_node, pose_gl)
+        rgb, depth = self._offscreen.render(self._scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
+        depth = depth.astype(np.float32)
+        depth[depth <= 0.0] = np.inf
+        return Frame(np.ascontiguousarray(rgb[..., :3]), depth)
+
+    def close(self) -> None:
+        if self._offscreen is not None:
+            self._offscreen.delete()
+            self._offscreen = None
+
+    def __enter__(self) -> PyrenderRenderer:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def make_renderer(
+    scene: Scene, camera: PinholeCamera, backend: str = "mujoco"
+) -> MujocoRenderer | PyrenderRenderer:
+    """Renderer of ``scene`` for ``camera`` with the named backend (``BACKENDS``)."""
+    if backend == "mujoco":
+        return MujocoRenderer(scene, camera)
+    if backend == "pyrender":
+        return PyrenderRenderer(scene, camera)
+    raise ValueError(f"unknown render backend {backend!r}; allowed: {list(BACKENDS)}")
