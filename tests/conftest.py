@@ -111,3 +111,14 @@ def empty_room() -> Scene:
 @pytest.fixture(scope="session")
 def walled_room() -> Scene:
     return make_tiny_scene(with_boxes=False, inner_wall=True)
+
+
+@pytest.fixture(scope="session")
+def home_build(tmp_path_factory: pytest.TempPathFactory):
+    """Directory of the built-in ``home`` scene's database + query runs (160x120, seed 0, realistic),
+    built once per test session; read it with ``vgpnav_env.runs.load_build``."""
+    from vgpnav_env.build import build_runs
+
+    out = tmp_path_factory.mktemp("builds") / "home-160x120-s0-realistic"
+    build_runs("home", out, size=(160, 120), seed=0, progress=False)
+    return out

@@ -108,7 +108,8 @@ def _write_bytes(path: Path, data: bytes) -> None:
         os.fsync(f.fileno())
 
 
-def _write_json(path: Path, obj: Any) -> None:
+def write_json(path: Path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON and fsync it."""
     _write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
 
 
@@ -178,14 +179,14 @@ def write_run(directory: Path, run: Run, depth: NDArray[np.floating] | None = No
         _write_bytes(directory / "images" / f"{i:06d}.png", png.tobytes())
     _write_npy(directory / "poses.npy", run.poses.astype(np.float64))
     cam = run.camera
-    _write_json(
+    write_json(
         directory / "intrinsics.json",
         {"width": cam.width, "height": cam.height, "fovy_rad": cam.fovy, "K": cam.K.tolist()},
     )
     if depth is not None:
         (directory / "groundtruth").mkdir()
         _write_npy(directory / "groundtruth" / "depth.npz", depth.astype(np.float16), compressed_npz=True)
-    _write_json(directory / "meta.json", meta)
+    write_json(directory / "meta.json", meta)
 
 
 def save_run(path: Path | str, run: Run, depth: NDArray[np.floating] | None = None) -> Path:
