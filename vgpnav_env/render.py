@@ -176,6 +176,30 @@ class MujocoRenderer:
             pass
 
 
+#: pyrender writes gamma-encoded colour, about texture * light^(1/2.2), where MuJoCo writes
+#: texture * light. Scaling pyrender's lights by L^1.2 at a typical total light L = 0.8 makes
+#: mid-tones agree (an approximation: the two shading models differ).
+_LIGHT_SCALE = 0.8**1.2
+
+
+def _import_pyrender():
+    """Import pyrender (lazily) with single-sample framebuffers.
+
+    pyrender hard-codes 4x MSAA; the resolved depth is then one sample's depth, ~0.3 px away
+    from the pixel centre, which biases back-projected geometry. Storing its multisample
+    renderbuffers with one sample makes depth exact at pixel centres (as ``MujocoRenderer``).
+    """
+    import pyrender
+    import pyrender.renderer
+    from OpenGL import GL
+
+    def single_sample_storage(target, samples, internalformat, width, height):
+        GL.glRenderbufferStorage(target, internalformat, width, height)
+
+    pyrender.renderer.glRenderbufferStorageMultisample = single_sample_storage
+    return pyrender
+
+
 class PyrenderRenderer:
     """pyrender backend over the scene's trimesh meshes with the same camera contract.
 
@@ -186,13 +210,12 @@ class PyrenderRenderer:
     """
 
     def __init__(self, scene: Scene, camera: PinholeCamera) -> None:
-        import pyrender  # lazy: only this backend needs it
-
+        pyrender = _import_pyrender()
         self.camera = camera
         self._pyrender = pyrender
         lighting = lighting_for(scene.lighting)
         ambient = lighting.headlight_ambient + sum(light.ambient for light in lighting.lights)
-        self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.full(3, ambient))
+        self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.full(3, _LIGHT_SCALE * ambient))
         for sm in scene.meshes:
             self._scene.add(pyrender.Mesh.from_trimesh(sm.mesh, material=self._material(sm), smooth=False))
         for light in lighting.lights:
@@ -204,7 +227,9 @@ class PyrenderRenderer:
             fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5, znear=0.05, zfar=1000.0
         )
         self._cam_node = self._scene.add(cam, pose=np.eye(4))
-        head = pyrender.DirectionalLight(color=np.ones(3), intensity=np.pi * lighting.headlight_diffuse)
+        head = pyrender.DirectionalLight(
+            color=np.ones(3), intensity=_LIGHT_SCALE * np.pi * lighting.headlight_diffuse
+        )
         self._head_node = self._scene.add(head, pose=np.eye(4))
         self._offscreen = pyrender.OffscreenRenderer(camera.width, camera.height)
 
@@ -234,7 +259,7 @@ class PyrenderRenderer:
         x /= np.linalg.norm(x)
         pose = np.eye(4)
         pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-        light = self._pyrender.DirectionalLight(color=np.ones(3), intensity=np.pi * diffuse)
+        light = self._pyrender.DirectionalLight(color=np.ones(3), intensity=_LIGHT_SCALE * np.pi * diffuse)
         self._scene.add(light, pose=pose)
 
     def render(self, T_wc: ArrayLike) -> Frame:
@@ -251,9 +276,21 @@ class PyrenderRenderer:
         return Frame(np.ascontiguousarray(rgb[..., :3]), depth)
 
     def close(self) -> None:
-        if self._offscreen is not None:
-            self._offscreen.delete()
-            self._offscreen = None
+        if self._offscreen is None:
+            return
+        offscreen, self._offscreen = self._offscreen, None
+        display = getattr(offscreen._platform, "_egl_display", None)
+        if display is None:
+            offscreen.delete()
+            return
+        # pyrender's delete() calls eglTerminate on the EGL display, which is shared with
+        # MuJoCo's contexts in this process and would break them: free only our context.
+        from OpenGL import EGL
+
+        offscreen._platform.make_current()
+        offscreen._renderer.delete()
+        EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+        EGL.eglDestroyContext(display, offscreen._platform._egl_context)
 
     def __enter__(self) -> PyrenderRenderer:
         return self
