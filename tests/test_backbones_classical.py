@@ -130,3 +130,7 @@ def test_matching_and_scale_linking_units():
     scales, linked = link_scales(pairs, min_common=8)
     np.testing.assert_array_equal(linked, [True, True, False, False])
     assert scales[0] * 2.0 == pytest.approx(scales[1] * 0.5)
+    # A pair whose shared depths disagree (a wrong relative pose) is not linked.
+    pairs[2] = Pair(np.arange(20), depth[:20] * np.geomspace(0.2, 5.0, 20), 50)
+    scales, linked = link_scales(pairs, min_common=8, max_spread=0.15)
+    np.testing.assert_array_equal(linked, [True, True, False, False])

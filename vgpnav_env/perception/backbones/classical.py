@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import poselib
 from numpy.typing import NDArray
+from scipy.sparse.csgraph import connected_components
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged, check_inputs
@@ -42,11 +43,13 @@ class ClassicalConfig:
     mutual: bool = True
     max_epipolar_error: float = 1.0
     ransac_min_iterations: int = 200
+    ransac_max_iterations: int = 2000
     min_inliers: int = 50
     full_confidence_inliers: int = 200
     full_confidence_parallax_deg: float = 2.0
     min_parallax_deg: float = 0.5
     min_common_points: int = 8
+    max_link_spread: float = 0.15
     sweep_scale: float = 0.5
     sweep_planes: int = 64
     sweep_candidates: int = 5
@@ -169,12 +172,14 @@ def triangulate_query_depth(
 
 
 def link_scales(
-    pairs: list[PairGeometry | None], min_common: int
+    pairs: list[PairGeometry | None], min_common: int, max_spread: float = 0.15
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Relative scale per pair so that shared query keypoints get equal depths; (k,), linked mask.
 
-    Pair scales are solved in the log domain by weighted least squares over the connected
-    component of the pair with most inliers; pairs outside it are not linked.
+    Two pairs are linked when they share ``min_common`` triangulated query keypoints whose depth
+    ratios agree (median absolute deviation of the log ratio <= ``max_spread``). Log scales are
+    solved by weighted least squares over the connected component with most inliers; pairs
+    outside it are not linked.
     """
     k = len(pairs)
     scales = np.ones(k)
@@ -189,24 +194,27 @@ def link_scales(
             common, ia, ja = np.intersect1d(pi.query_index, pj.query_index, return_indices=True)
             if len(common) < min_common:
                 continue
-            # depth_i * s_i = depth_j * s_j  ->  log s_j - log s_i = log median(depth_i / depth_j)
-            edges.append((i, j, float(np.log(np.median(pi.depth[ia] / pj.depth[ja]))), float(len(common))))
-    anchor = max(usable, key=lambda i: pairs[i].n_inliers)
-    component = {anchor}
-    grew = True
-    while grew:
-        grew = False
-        for i, j, _, _ in edges:
-            if (i in component) != (j in component):
-                component |= {i, j}
-                grew = True
-    nodes = sorted(component)
+            # depth_i * s_i = depth_j * s_j  ->  log s_j - log s_i = log(depth_i / depth_j)
+            log_ratio = np.log(pi.depth[ia] / pj.depth[ja])
+            centre = float(np.median(log_ratio))
+            if np.median(np.abs(log_ratio - centre)) <= max_spread:
+                edges.append((i, j, centre, float(len(common))))
+    graph = np.zeros((k, k))
+    for i, j, _, _ in edges:
+        graph[i, j] = 1.0
+    _, labels = connected_components(graph, directed=False)
+    weight = {
+        label: sum(pairs[i].n_inliers for i in usable if labels[i] == label) for label in set(labels[usable])
+    }
+    best = max(weight, key=weight.get)
+    nodes = [i for i in usable if labels[i] == best]
+    anchor = max(nodes, key=lambda i: pairs[i].n_inliers)
     pos = {n: p for p, n in enumerate(nodes)}
-    rows = [e for e in edges if e[0] in component]
+    rows = [e for e in edges if labels[e[0]] == best]
     A = np.zeros((len(rows) + 1, len(nodes)))
     y = np.zeros(len(rows) + 1)
-    for r, (i, j, log_ratio, weight) in enumerate(rows):
-        w = np.sqrt(weight)
+    for r, (i, j, log_ratio, n_common) in enumerate(rows):
+        w = np.sqrt(n_common)
         A[r, pos[j]], A[r, pos[i]], y[r] = w, -w, w * log_ratio
     A[-1, pos[anchor]] = 1e3
     log_s = np.linalg.lstsq(A, y, rcond=None)[0]
@@ -272,7 +280,11 @@ class ClassicalBackbone(Backbone):
             pr,
             cam,
             cam,
-            {"max_epipolar_error": cfg.max_epipolar_error, "min_iterations": cfg.ransac_min_iterations},
+            {
+                "max_epipolar_error": cfg.max_epipolar_error,
+                "min_iterations": cfg.ransac_min_iterations,
+                "max_iterations": cfg.ransac_max_iterations,
+            },
             {},
         )
         inliers = np.asarray(info["inliers"], bool)
@@ -325,7 +337,7 @@ class ClassicalBackbone(Backbone):
         n_matches = np.array([r[1] for r in results], np.int64)
         timings["two_view"] = time.perf_counter() - t0
 
-        scales, linked = link_scales(pairs, self.config.min_common_points)
+        scales, linked = link_scales(pairs, self.config.min_common_points, self.config.max_link_spread)
         keypoint_depths = [pairs[i].depth * scales[i] for i in range(k) if linked[i]]
         norm = float(np.median(np.concatenate(keypoint_depths))) if keypoint_depths else 1.0
         scales = scales / norm
