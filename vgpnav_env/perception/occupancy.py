@@ -1,0 +1,202 @@
+"""Metric occupancy from world points: height classes and a log-odds grid fused over time.
+
+Points are metric world points (W, z up). Relative to the anchored ground height
+``z_ground``: ``|z - z_ground| < free_tol`` is traversable ground (free);
+``obstacle_min <= z - z_ground <= camera_height`` is an obstacle, projected onto the floor
+grid (:class:`vgpnav_env.grid.GridSpec`, rows along +y, cols along +x).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import map_coordinates
+
+from vgpnav_env.grid import GridSpec
+
+#: Egocentric crop encoding.
+UNKNOWN, FREE, OCCUPIED = 0, 128, 255
+
+
+@dataclass(frozen=True)
+class PointClasses:
+    """Boolean masks (N,) over the input points."""
+
+    free: NDArray[np.bool_]
+    obstacle: NDArray[np.bool_]
+
+
+def classify_points(
+    points_w: ArrayLike,
+    z_ground: float,
+    camera_height: float,
+    free_tol: float = 0.05,
+    obstacle_min: float = 0.15,
+) -> PointClasses:
+    """Free-ground and obstacle masks of world points (N, 3) by height above ``z_ground`` (m)."""
+    P = np.asarray(points_w, float).reshape(-1, 3)
+    dz = P[:, 2] - z_ground
+    finite = np.isfinite(P).all(axis=1)
+    return PointClasses(
+        free=finite & (np.abs(dz) < free_tol),
+        obstacle=finite & (dz >= obstacle_min) & (dz <= camera_height),
+    )
+
+
+def _unique_cells(spec: GridSpec, xy: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Flat indices of the distinct in-grid cells hit by world points (N, 2)."""
+    cells = spec.world_to_cell(xy)
+    cells = cells[spec.contains(cells)]
+    return np.unique(cells[:, 0] * spec.shape[1] + cells[:, 1])
+
+
+def _farthest_per_direction(start: NDArray[np.int64], ends: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The farthest of ``ends`` (m, 2) in each direction bin seen from ``start``.
+
+    Bins are one cell wide at the farthest end, so the rays to the dropped (nearer) ends
+    are covered, to within a cell, by the kept ones.
+    """
+    d = (ends - start).astype(float)
+    dist = np.hypot(d[:, 0], d[:, 1])
+    n_bins = max(8, int(np.ceil(2.0 * np.pi * dist.max())))
+    b = np.floor((np.arctan2(d[:, 0], d[:, 1]) + np.pi) / (2.0 * np.pi) * n_bins).astype(np.int64) % n_bins
+    order = np.lexsort((-dist, b))  # by bin, farthest first
+    first = np.r_[True, b[order][1:] != b[order][:-1]]
+    return ends[order[first]]
+
+
+def _ray_cells(start: NDArray[np.int64], ends: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(row, col) of the cells on the 2D segments start -> each end, ends excluded (DDA sampling)."""
+    delta = ends - start
+    n = np.abs(delta).max(axis=1)
+    steps = int(n.max()) if len(n) else 0
+    if steps == 0:
+        return np.zeros((0, 2), np.int64)
+    t = np.arange(steps)[None, :] / np.maximum(n, 1)[:, None]  # (rays, steps), t < 1 excludes the end
+    pts = np.rint(start[None, None, :] + t[..., None] * delta[:, None, :]).astype(np.int64)
+    keep = np.arange(steps)[None, :] < n[:, None]
+    return pts[keep]
+
+
+class LogOddsMap:
+    """A log-odds occupancy grid (float32, 0 = unknown) over ``spec``.
+
+    ``update`` adds ``l_occ`` once per cell with obstacle points in this frame and
+    ``l_free`` once per cell with ground points or crossed by a 2D ray from the camera to an
+    obstacle cell (when ``camera_xy`` is given; rays go to the farthest obstacle cell per
+    one-cell-wide direction bin, which keeps the carving cheap), never to a cell hit by an obstacle in the
+    same frame; values are clamped to ``clamp``.
+    """
+
+    def __init__(
+        self,
+        spec: GridSpec,
+        l_free: float = -0.4,
+        l_occ: float = 0.85,
+        clamp: tuple[float, float] = (-4.0, 4.0),
+    ) -> None:
+        if l_free >= 0 or l_occ <= 0:
+            raise ValueError(f"need l_free < 0 < l_occ, got l_free={l_free}, l_occ={l_occ}")
+        if not clamp[0] < 0 < clamp[1]:
+            raise ValueError(f"clamp must satisfy low < 0 < high, got {clamp}")
+        self.spec = spec
+        self.l_free = float(l_free)
+        self.l_occ = float(l_occ)
+        self.clamp = (float(clamp[0]), float(clamp[1]))
+        self.logodds = np.zeros(spec.shape, np.float32)
+
+    @classmethod
+    def from_prior(
+        cls,
+        spec: GridSpec,
+        prior_logodds: ArrayLike,
+        l_free: float = -0.4,
+        l_occ: float = 0.85,
+        clamp: tuple[float, float] = (-4.0, 4.0),
+    ) -> LogOddsMap:
+        """A map starting from a prior log-odds grid of shape ``spec.shape`` (clamped)."""
+        prior = np.asarray(prior_logodds, np.float32)
+        if prior.shape != spec.shape:
+            raise ValueError(f"prior shape {prior.shape} does not match grid shape {spec.shape}")
+        m = cls(spec, l_free, l_occ, clamp)
+        m.logodds = np.clip(prior, *m.clamp).astype(np.float32)
+        return m
+
+    def copy(self) -> LogOddsMap:
+        m = LogOddsMap(self.spec, self.l_free, self.l_occ, self.clamp)
+        m.logodds = self.logodds.copy()
+        return m
+
+    def update(
+        self,
+        points_w: ArrayLike,
+        z_ground: float,
+        camera_height: float,
+        camera_xy: ArrayLike | None = None,
+        free_tol: float = 0.05,
+        obstacle_min: float = 0.15,
+    ) -> PointClasses:
+        """Fuse one frame of metric world points (N, 3); returns their classes."""
+        P = np.asarray(points_w, float).reshape(-1, 3)
+        classes = classify_points(P, z_ground, camera_height, free_tol, obstacle_min)
+        W = self.spec.shape[1]
+        occ = _unique_cells(self.spec, P[classes.obstacle, :2])
+        free = [_unique_cells(self.spec, P[classes.free, :2])]
+        if camera_xy is not None and len(occ):
+            start = self.spec.world_to_cell(np.asarray(camera_xy, float)[:2])
+            ends = _farthest_per_direction(start, np.stack([occ // W, occ % W], axis=1))
+            ray = _ray_cells(start, ends)
+            ray = ray[self.spec.contains(ray)]
+            free.append(np.unique(ray[:, 0] * W + ray[:, 1]))
+        free_cells = np.setdiff1d(np.concatenate(free), occ, assume_unique=False)
+        flat = self.logodds.reshape(-1)
+        flat[occ] += self.l_occ
+        flat[free_cells] += self.l_free
+        np.clip(self.logodds, *self.clamp, out=self.logodds)
+        return classes
+
+    def probability(self) -> NDArray[np.float32]:
+        """Occupancy probability per cell, 0.5 where unknown."""
+        return (1.0 / (1.0 + np.exp(-self.logodds))).astype(np.float32)
+
+    def occupied(self, threshold: float = 0.65) -> NDArray[np.bool_]:
+        return self.probability() > threshold
+
+    def free(self, threshold: float = 0.35) -> NDArray[np.bool_]:
+        return self.probability() < threshold
+
+    def egocentric_crop(
+        self,
+        x: float,
+        y: float,
+        yaw: float,
+        size_cells: int,
+        resolution: float | None = None,
+        occupied_threshold: float = 0.65,
+        free_threshold: float = 0.35,
+    ) -> NDArray[np.uint8]:
+        """(size, size) uint8 crop centred on the robot at (x, y) facing up.
+
+        Row 0 is ahead of the robot (heading ``yaw``, counter-clockwise from +x), column
+        index grows to the robot's right. Pixels are ``resolution`` metres (default: the
+        map's) and encode ``OCCUPIED`` (255) / ``FREE`` (128) / ``UNKNOWN`` (0, also outside
+        the map), nearest-cell sampled.
+        """
+        if size_cells < 1:
+            raise ValueError(f"size_cells must be >= 1, got {size_cells}")
+        res = self.spec.resolution if resolution is None else float(resolution)
+        labels = np.full(self.spec.shape, UNKNOWN, np.uint8)
+        p = self.probability()
+        labels[p < free_threshold] = FREE
+        labels[p > occupied_threshold] = OCCUPIED
+        centre = (size_cells - 1) / 2.0
+        r, c = np.meshgrid(np.arange(size_cells), np.arange(size_cells), indexing="ij")
+        ahead = (centre - r) * res
+        right = (c - centre) * res
+        wx = x + ahead * np.cos(yaw) + right * np.sin(yaw)
+        wy = y + ahead * np.sin(yaw) - right * np.cos(yaw)
+        col = (wx - self.spec.origin[0]) / self.spec.resolution - 0.5
+        row = (wy - self.spec.origin[1]) / self.spec.resolution - 0.5
+        return map_coordinates(labels, [row, col], order=0, mode="constant", cval=UNKNOWN).astype(np.uint8)
