@@ -147,3 +147,21 @@ def test_single_reference_ablation_needs_the_scale() -> None:
         T_wi, T_qi, conf, MotionAveragingConfig(method="single", single_reference="confidence")
     )
     assert by_conf.inliers[np.argmax(conf)]
+
+
+def test_failed_pairs_and_unscaled_pairs() -> None:
+    rng = np.random.default_rng(21)
+    T_wq, T_wi, T_qi, conf = _scenario(rng, k=8, rot_noise_deg=0.2, dir_noise_deg=0.2)
+    # Pairs 0-2 failed in the backbone (confidence 0, identity pose): ignored entirely.
+    T_qi[:3] = np.eye(4)
+    conf[:3] = 0.0
+    # Pair 3 has a usable direction but a length on another scale.
+    T_iq = invert_pose(T_qi[3])
+    T_iq[:3, 3] *= 5.0
+    T_qi[3] = invert_pose(T_iq)
+    valid = np.ones(8, bool)
+    valid[3] = False
+    res = average_motion(T_wi, T_qi, conf, scale_valid=valid)
+    assert res.ok and not res.inliers[:3].any() and res.inliers[3:].all()
+    assert np.linalg.norm(res.T_wq[:3, 3] - T_wq[:3, 3]) < 0.02
+    assert res.scale_from_rays == pytest.approx(1.0 / UNKNOWN_SCALE, rel=0.01)

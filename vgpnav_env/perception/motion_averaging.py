@@ -188,10 +188,14 @@ def average_motion(
     config: MotionAveragingConfig | None = None,
     *,
     single_scale: float = 1.0,
+    scale_valid: ArrayLike | None = None,
 ) -> MotionResult:
     """Metric pose ``T_wq`` of the query camera from k references (see module docstring).
 
-    ``T_wi``, ``T_qi``: (k, 4, 4); ``confidence``: (k,) in [0, 1]. With
+    ``T_wi``, ``T_qi``: (k, 4, 4); ``confidence``: (k,) in [0, 1], references with confidence
+    0 or non-finite poses are ignored. ``scale_valid`` (k,) marks the pairs whose translation
+    length shares the common scale (``BackboneOutput.scale_valid``); only they enter
+    ``scale_from_rays`` (directions of all pairs are used). With
     ``config.method="single"`` the pose comes from one reference and its position is
     ``c_i + single_scale * R_wi t_iq``: ``single_scale`` converts backbone units to metres;
     the default 1.0 keeps backbone units, which is what makes this ablation poor unless the
@@ -208,8 +212,12 @@ def average_motion(
         )
     zeros = np.zeros(k)
     fail = MotionResult(np.eye(4), zeros, np.zeros(k, bool), 0, False, "", zeros.copy(), np.full(k, np.nan))
+    sv = np.ones(k, bool) if scale_valid is None else np.asarray(scale_valid, bool)
+    if sv.shape != (k,):
+        raise ValueError(f"scale_valid must have shape ({k},), got {sv.shape}")
     finite = np.isfinite(T_wi).all(axis=(1, 2)) & np.isfinite(T_qi).all(axis=(1, 2)) & np.isfinite(conf)
     conf = np.where(finite, np.clip(np.nan_to_num(conf), 0.0, 1.0), 0.0)
+    finite &= conf > 0
     if k == 0 or not finite.any():
         fail.reason = "too few references"
         return fail
@@ -307,5 +315,7 @@ def average_motion(
     if cond < min_cond:
         result.ok, result.reason = False, "degenerate rays"
         return result
-    result.scale_from_rays = _weighted_median(s[inliers] / baseline[inliers], omega[inliers])
+    scaled = inliers & sv
+    if scaled.any():
+        result.scale_from_rays = _weighted_median(s[scaled] / baseline[scaled], omega[scaled])
     return result
