@@ -1,0 +1,40 @@
+"""Lighting presets named by ``Scene.lighting``; the MuJoCo model builder and renderers read them.
+
+Meaning (see ``scenes/README.md``): a uniform ``ambient`` term, one ceiling point light per room
+(at the room's floor polygon centroid, ``ceiling_offset`` below the ceiling) with ``room_diffuse``
+colour and quadratic-free attenuation, and a camera ``headlight_diffuse``. Shadows stay off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+RGB = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class LightingPreset:
+    """Light colours/intensities (linear RGB in [0, 1]) for one lighting condition."""
+
+    ambient: RGB
+    room_diffuse: RGB
+    headlight_diffuse: RGB
+    ceiling_offset: float = 0.3
+
+
+LIGHTING_PRESETS: dict[str, LightingPreset] = {
+    "default": LightingPreset(
+        ambient=(0.35, 0.35, 0.35), room_diffuse=(0.45, 0.45, 0.45), headlight_diffuse=(0.2, 0.2, 0.2)
+    ),
+    "dim": LightingPreset(
+        ambient=(0.18, 0.18, 0.18), room_diffuse=(0.25, 0.25, 0.25), headlight_diffuse=(0.1, 0.1, 0.1)
+    ),
+    "warm": LightingPreset(
+        ambient=(0.36, 0.31, 0.24), room_diffuse=(0.5, 0.42, 0.3), headlight_diffuse=(0.2, 0.17, 0.13)
+    ),
+    "bright": LightingPreset(
+        ambient=(0.5, 0.5, 0.5), room_diffuse=(0.55, 0.55, 0.55), headlight_diffuse=(0.3, 0.3, 0.3)
+    ),
+}
+
+LIGHTING_LEVELS: tuple[str, ...] = tuple(LIGHTING_PRESETS)
