@@ -8,7 +8,10 @@ Contract of the model built here:
   ``mesh``) in group ``COLLISION_GROUP`` (3, hidden by the renderers), contype =
   conaffinity = 1. The floor has no collision part: a robot stands on it by its joints.
 - A world camera ``RENDER_CAMERA`` that renderers place anywhere (``vgpnav_env.render``).
-- Lights from ``LIGHTING[scene.lighting]``; no light casts shadows.
+- Lights from ``vgpnav_env.scenes.lighting.LIGHTING_PRESETS[scene.lighting]``: the preset's
+  ambient and diffuse headlight, and its ``room_diffuse`` as two tilted directional lights
+  (``scene_lights``; not per-room point lights, which MuJoCo's per-vertex lighting draws badly
+  on large triangles); no specular light, no light casts shadows.
 - Clip planes: near ``ZNEAR_M`` metres, far beyond the scene diagonal.
 
 Other code (e.g. the environment's robot) adds bodies to the ``MjSpec`` returned by
@@ -26,6 +29,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+from vgpnav_env.scenes.lighting import LIGHTING_PRESETS, LightingPreset
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 
 logger = logging.getLogger(__name__)
@@ -36,73 +40,38 @@ COLLISION_GROUP = 3
 ZNEAR_M = 0.05
 
 
+#: Directions (W) of the two directional lights that carry a preset's ``room_diffuse`` (half each).
+#: MuJoCo's classic renderer lights per vertex, so point lights over large triangles (floors,
+#: walls) come out wrong; two opposite, tilted directional lights light floors evenly and every
+#: wall orientation a little, the same in every room.
+ROOM_LIGHT_DIRECTIONS = ((0.4, 0.25, -1.0), (-0.4, -0.25, -1.0))
+
+
 @dataclass(frozen=True)
 class DirectionalLight:
-    """A directional light shining along ``direction`` (W) with diffuse intensity (grey)."""
+    """A light shining along ``direction`` (unit, W) with diffuse RGB."""
 
     direction: tuple[float, float, float]
-    diffuse: float
-    ambient: float = 0.0
+    diffuse: tuple[float, float, float]
 
 
-@dataclass(frozen=True)
-class Lighting:
-    """Lights of a scene: directional lights plus a camera headlight (ambient, diffuse).
-
-    Specular light is zero everywhere: appearance should not change with viewpoint.
-    """
-
-    lights: tuple[DirectionalLight, ...]
-    headlight_ambient: float
-    headlight_diffuse: float
-
-
-#: Lighting presets by ``Scene.lighting`` name. Total ambient + diffuse stays <= ~1 so that
-#: texture colours are reproduced without saturation.
-LIGHTING: dict[str, Lighting] = {
-    "default": Lighting(
-        (
-            DirectionalLight((0.3, 0.2, -1.0), 0.35, 0.15),
-            DirectionalLight((-0.4, 0.5, -0.8), 0.2, 0.1),
-            DirectionalLight((0.5, -0.6, -0.6), 0.15, 0.0),
-        ),
-        headlight_ambient=0.2,
-        headlight_diffuse=0.15,
-    ),
-    "dim": Lighting(
-        (
-            DirectionalLight((0.3, 0.2, -1.0), 0.25, 0.1),
-            DirectionalLight((-0.4, 0.5, -0.8), 0.1, 0.05),
-        ),
-        headlight_ambient=0.15,
-        headlight_diffuse=0.1,
-    ),
-    "bright": Lighting(
-        (
-            DirectionalLight((0.3, 0.2, -1.0), 0.45, 0.2),
-            DirectionalLight((-0.4, 0.5, -0.8), 0.25, 0.15),
-            DirectionalLight((0.5, -0.6, -0.6), 0.2, 0.0),
-        ),
-        headlight_ambient=0.25,
-        headlight_diffuse=0.15,
-    ),
-    "side": Lighting(
-        (
-            DirectionalLight((1.0, 0.3, -0.4), 0.5, 0.1),
-            DirectionalLight((-0.2, -0.5, -1.0), 0.1, 0.1),
-        ),
-        headlight_ambient=0.2,
-        headlight_diffuse=0.1,
-    ),
-}
-
-
-def lighting_for(name: str) -> Lighting:
-    """The ``Lighting`` preset called ``name`` (clear error for unknown names)."""
+def lighting_for(name: str) -> LightingPreset:
+    """The ``LightingPreset`` called ``name`` (clear error for unknown names)."""
     try:
-        return LIGHTING[name]
+        return LIGHTING_PRESETS[name]
     except KeyError:
-        raise ValueError(f"unknown lighting {name!r}; allowed: {sorted(LIGHTING)}") from None
+        raise ValueError(f"unknown lighting {name!r}; allowed: {sorted(LIGHTING_PRESETS)}") from None
+
+
+def scene_lights(scene: Scene) -> list[DirectionalLight]:
+    """The directional lights of ``scene`` (its preset's ``room_diffuse``, see ROOM_LIGHT_DIRECTIONS)."""
+    preset = lighting_for(scene.lighting)
+    diffuse = tuple(0.5 * c for c in preset.room_diffuse)
+    lights = []
+    for d in ROOM_LIGHT_DIRECTIONS:
+        unit = np.asarray(d, float) / np.linalg.norm(d)
+        lights.append(DirectionalLight(tuple(float(v) for v in unit), diffuse))
+    return lights
 
 
 def _unique_name(base: str, used: set[str]) -> str:
@@ -204,21 +173,21 @@ def _add_collision(spec: mujoco.MjSpec, sm: SceneMesh, used: set[str]) -> None:
         geom.rgba = [0.5, 0.5, 0.5, 1.0]
 
 
-def _add_lights(spec: mujoco.MjSpec, lighting: Lighting) -> None:
+def _add_lights(spec: mujoco.MjSpec, scene: Scene) -> None:
+    preset = lighting_for(scene.lighting)
     head = spec.visual.headlight
     head.active = 1
-    head.ambient = [lighting.headlight_ambient] * 3
-    head.diffuse = [lighting.headlight_diffuse] * 3
+    head.ambient = list(preset.ambient)
+    head.diffuse = list(preset.headlight_diffuse)
     head.specular = [0.0, 0.0, 0.0]
-    for i, light in enumerate(lighting.lights):
-        d = np.asarray(light.direction, float)
+    for i, light in enumerate(scene_lights(scene)):
         spec.worldbody.add_light(
             name=f"light_{i}",
             type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
-            dir=d / np.linalg.norm(d),
             pos=[0.0, 0.0, 10.0],
-            diffuse=[light.diffuse] * 3,
-            ambient=[light.ambient] * 3,
+            dir=list(light.direction),
+            diffuse=list(light.diffuse),
+            ambient=[0.0, 0.0, 0.0],
             specular=[0.0, 0.0, 0.0],
             castshadow=False,
         )
@@ -260,7 +229,7 @@ def build_mjspec(scene: Scene, *, max_image_size: tuple[int, int] = (640, 480)) 
         _add_visual(spec, sm, materials[key], used)
         _add_collision(spec, sm, used)
 
-    _add_lights(spec, lighting_for(scene.lighting))
+    _add_lights(spec, scene)
     spec.worldbody.add_camera(name=RENDER_CAMERA, pos=spec.stat.center, fovy=60.0)
     return spec
 

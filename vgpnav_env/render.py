@@ -22,7 +22,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from vgpnav_env.geometry import PinholeCamera, mujoco_from_opencv
-from vgpnav_env.scenes.model import COLLISION_GROUP, RENDER_CAMERA, build_model, lighting_for
+from vgpnav_env.scenes.model import (
+    COLLISION_GROUP,
+    RENDER_CAMERA,
+    build_model,
+    lighting_for,
+    scene_lights,
+)
 from vgpnav_env.scenes.scene import Scene
 
 logger = logging.getLogger(__name__)
@@ -205,7 +211,7 @@ class PyrenderRenderer:
 
     Materials: a mesh whose trimesh visual carries a PBR material (e.g. from a GLB) keeps it;
     otherwise the ``SceneMesh.material`` (texture image, rgba) is used, as in MuJoCo. Lights
-    mirror the MuJoCo lighting preset (directional lights + ambient; the headlight is a
+    mirror the MuJoCo lights (ambient, directional lights; the headlight is a
     directional light attached to the camera), so colours roughly agree with MuJoCo.
     """
 
@@ -213,12 +219,12 @@ class PyrenderRenderer:
         pyrender = _import_pyrender()
         self.camera = camera
         self._pyrender = pyrender
-        lighting = lighting_for(scene.lighting)
-        ambient = lighting.headlight_ambient + sum(light.ambient for light in lighting.lights)
-        self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.full(3, _LIGHT_SCALE * ambient))
+        preset = lighting_for(scene.lighting)
+        ambient = _LIGHT_SCALE * np.asarray(preset.ambient, float)
+        self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=ambient)
         for sm in scene.meshes:
             self._scene.add(pyrender.Mesh.from_trimesh(sm.mesh, material=self._material(sm), smooth=False))
-        for light in lighting.lights:
+        for light in scene_lights(scene):
             self._add_directional(light.direction, light.diffuse)
         K = camera.K
         # pyrender maps (cx, cy) to window coordinates, where pixel centres sit at +0.5; K's
@@ -227,8 +233,10 @@ class PyrenderRenderer:
             fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5, znear=0.05, zfar=1000.0
         )
         self._cam_node = self._scene.add(cam, pose=np.eye(4))
+        head_color = np.asarray(preset.headlight_diffuse, float)
         head = pyrender.DirectionalLight(
-            color=np.ones(3), intensity=_LIGHT_SCALE * np.pi * lighting.headlight_diffuse
+            color=head_color / max(float(head_color.max()), 1e-9),
+            intensity=_LIGHT_SCALE * np.pi * float(head_color.max()),
         )
         self._head_node = self._scene.add(head, pose=np.eye(4))
         self._offscreen = pyrender.OffscreenRenderer(camera.width, camera.height)
@@ -251,15 +259,16 @@ class PyrenderRenderer:
             roughnessFactor=1.0,
         )
 
-    def _add_directional(self, direction, diffuse: float) -> None:
-        # pyrender lights shine along their node's -z; Lambertian scale 1/pi is undone by pi.
-        d = np.asarray(direction, float)
-        z = -d / np.linalg.norm(d)
+    def _add_directional(self, direction, diffuse) -> None:
+        # pyrender lights shine along their node's -z; Lambertian 1/pi is undone by the pi.
+        z = -np.asarray(direction, float)
         x = np.cross([0.0, 0.0, 1.0], z) if abs(z[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
         x /= np.linalg.norm(x)
         pose = np.eye(4)
         pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-        light = self._pyrender.DirectionalLight(color=np.ones(3), intensity=_LIGHT_SCALE * np.pi * diffuse)
+        color = np.asarray(diffuse, float)
+        peak = max(float(color.max()), 1e-9)
+        light = self._pyrender.DirectionalLight(color=color / peak, intensity=_LIGHT_SCALE * np.pi * peak)
         self._scene.add(light, pose=pose)
 
     def render(self, T_wc: ArrayLike) -> Frame:
