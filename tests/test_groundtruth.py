@@ -1,0 +1,108 @@
+"""Ground truth from meshes: surface points, floor/obstacle/free/navigable grids, paths on them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import ROOM_X, ROOM_Y, TINY_BOXES, WALL_H
+
+from vgpnav_env.grid import geodesic_distance, largest_component, path_length, shortest_path
+from vgpnav_env.groundtruth import GroundTruthMap, ground_truth_map, surface_points
+
+# Radii that are not multiples of the 5 cm cells, so no cell centre sits exactly at the radius.
+RADIUS = 0.22
+
+
+def expected_navigable(radius: float, boxes: bool) -> float:
+    """Room interior shrunk by the radius minus each box's Minkowski sum with the robot disc."""
+    area = (ROOM_X - 2 * radius) * (ROOM_Y - 2 * radius)
+    if boxes:
+        for _, (w, d, _h) in TINY_BOXES.values():
+            area -= w * d + 2 * radius * (w + d) + np.pi * radius**2
+    return area
+
+
+def test_surface_points_density_and_bounds(tiny_scene):
+    pts = surface_points(tiny_scene, spacing=0.05, seed=0)
+    area = sum(m.mesh.area for m in tiny_scene.meshes)
+    assert len(pts) == pytest.approx(area / 0.05**2, rel=0.01)
+    lo, hi = tiny_scene.bounds
+    assert np.all(pts >= lo - 1e-9) and np.all(pts <= hi + 1e-9)
+    np.testing.assert_array_equal(pts, surface_points(tiny_scene, spacing=0.05, seed=0))
+    # Every point lies on some mesh surface: the floor top is at z = 0, walls at x = 0 / 4 ...
+    on_floor = np.abs(pts[:, 2]) < 1e-9
+    assert on_floor.sum() > 0.5 * ROOM_X * ROOM_Y / 0.05**2
+
+
+@pytest.mark.parametrize("radius", [0.18, RADIUS])
+def test_navigable_area_empty_and_furnished(empty_room, tiny_scene, radius):
+    for scene, boxes in ((empty_room, False), (tiny_scene, True)):
+        gt = ground_truth_map(scene, robot_radius=radius)
+        expected = expected_navigable(radius, boxes)
+        assert gt.area_m2(gt.navigable) == pytest.approx(expected, rel=0.02), scene.key
+        # Free = room interior minus box footprints, to within one boundary cell row (~4%).
+        footprints = sum(w * d for _, (w, d, _h) in TINY_BOXES.values()) if boxes else 0.0
+        assert gt.area_m2(gt.free) == pytest.approx(ROOM_X * ROOM_Y - footprints, rel=0.04)
+        # The floor slab reaches under the walls (0.1 m thick all around).
+        assert gt.area_m2(gt.floor) == pytest.approx((ROOM_X + 0.2) * (ROOM_Y + 0.2), rel=0.03)
+
+
+def test_layers_consistent(tiny_scene):
+    gt = ground_truth_map(tiny_scene, robot_radius=RADIUS)
+    assert isinstance(gt, GroundTruthMap)
+    np.testing.assert_array_equal(gt.free, gt.floor & ~gt.obstacle)
+    assert not np.any(gt.navigable & ~gt.free)
+    # Box footprints are obstacles; the room centre is navigable; the walls are obstacles.
+    assert not gt.is_navigable(np.array([[1.0, 1.5], [3.0, 3.5], [-0.05, 2.5]])).any()
+    assert gt.is_navigable(np.array([2.0, 2.5]))
+    assert not gt.is_navigable(np.array([100.0, 100.0]))
+    # Wall interiors (between the wall's faces) are obstacles, never enclosed free space.
+    r, c = gt.spec.world_to_cell(np.array([-0.05, 2.5]))
+    assert gt.obstacle[r, c] and not gt.free[r, c]
+    # The cache returns the same object.
+    assert ground_truth_map(tiny_scene, robot_radius=RADIUS) is gt
+
+
+def test_obstacle_band(tiny_scene):
+    """box_b is 0.5 m tall: no obstacle if the band starts above it; walls (2.5 m) still are."""
+    gt = ground_truth_map(tiny_scene, robot_radius=RADIUS, obstacle_band=(0.6, None))
+    assert gt.is_navigable(np.array([3.0, 3.5]))
+    assert not gt.is_navigable(np.array([1.0, 1.5]))  # box_a is 0.8 m tall
+    with pytest.raises(ValueError, match="obstacle_band"):
+        ground_truth_map(tiny_scene, obstacle_band=(1.0, 0.5))
+    assert WALL_H > 1.3
+
+
+def test_thin_wall_does_not_leak(walled_room):
+    """A 0.1 m wall at y = 2.5 from x = 0 to 3: paths and geodesics detour through the gap."""
+    gt = ground_truth_map(walled_room, robot_radius=RADIUS)
+    start, goal = (1.0, 1.5), (1.0, 3.5)
+    path = shortest_path(gt.navigable, gt.spec, start, goal)
+    assert path is not None
+    detour = 2 * np.hypot(3.0 + RADIUS - 1.0, 1.0)  # around the wall end (x = 3) plus clearance
+    assert path_length(path) > detour - 0.1
+    dist = geodesic_distance(gt.navigable, gt.spec, goal)
+    r, c = gt.spec.world_to_cell(np.array(start))
+    assert dist[r, c] > 2.0 + 2.0  # Euclidean is 2 m
+    # With the gap closed off by a radius too large to pass (gap is 1 m wide): unreachable.
+    closed = ground_truth_map(walled_room, robot_radius=0.55)
+    assert shortest_path(closed.navigable, closed.spec, start, goal) is None
+    r, c = closed.spec.world_to_cell(np.array(start))
+    assert np.isinf(geodesic_distance(closed.navigable, closed.spec, goal)[r, c])
+    # Free space (radius 0) also stays split along the wall except through the gap.
+    free_path = shortest_path(gt.free, gt.spec, start, goal)
+    assert path_length(free_path) > 2 * np.hypot(2.0, 1.0) - 0.1
+
+
+def test_straight_path_in_empty_room(empty_room):
+    gt = ground_truth_map(empty_room, robot_radius=RADIUS)
+    for start, goal in (((0.5, 0.5), (3.5, 4.5)), ((0.6, 2.0), (3.4, 2.3))):
+        path = shortest_path(gt.navigable, gt.spec, start, goal)
+        euclid = float(np.linalg.norm(np.subtract(goal, start)))
+        assert path_length(path) == pytest.approx(euclid, rel=0.02)
+
+
+def test_largest_component_is_one_region(walled_room):
+    gt = ground_truth_map(walled_room, robot_radius=0.55)
+    big = largest_component(gt.navigable)
+    assert 0 < big.sum() < gt.navigable.sum()  # the room splits in two; keep the larger side
