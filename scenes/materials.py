@@ -298,7 +298,7 @@ def _brick(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> 
 def _speckled(rng: np.random.Generator, n: int, base: NDArray, contrast: float, density: float) -> NDArray:
     specks = (rng.random((n, n)) < density).astype(float)
     specks = cv2.GaussianBlur(specks, (0, 0), 0.8) * 3
-    shade = 1.0 + contrast * (0.04 * _noise(rng, n, n / 10) + 0.02 * _noise(rng, n, 1.0) - 0.25 * specks)
+    shade = 1.0 + contrast * (0.015 * _noise(rng, n, n / 10) + 0.02 * _noise(rng, n, 1.0) - 0.25 * specks)
     return _tone(base, shade)
 
 
