@@ -106,3 +106,15 @@ def test_largest_component_is_one_region(walled_room):
     gt = ground_truth_map(walled_room, robot_radius=0.55)
     big = largest_component(gt.navigable)
     assert 0 < big.sum() < gt.navigable.sum()  # the room splits in two; keep the larger side
+
+
+def test_home_ground_truth_is_plausible():
+    from vgpnav_env.scenes import load_scene
+
+    gt = ground_truth_map(load_scene("home"))
+    floor, free, nav = (gt.area_m2(m) for m in (gt.floor, gt.free, gt.navigable))
+    big = gt.area_m2(largest_component(gt.navigable))
+    print(f"home: floor {floor:.1f}, free {free:.1f}, navigable {nav:.1f}, largest region {big:.1f} m2")
+    assert 80.0 <= floor <= 120.0  # DESIGN: ~80-120 m2 apartment
+    assert 0.3 * floor <= nav < free < floor
+    assert big >= 0.9 * nav  # rooms connect through doors

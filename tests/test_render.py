@@ -196,3 +196,17 @@ def test_bad_inputs(tiny_scene, mj_tiny):
         MujocoRenderer(build_model(tiny_scene), PinholeCamera(1280, 960, 1.0))
     with pytest.raises(TypeError, match="MjModel or a Scene"):
         MujocoRenderer("home", CAM)
+
+
+def test_home_database_view():
+    """A database-like view in the built-in home (1.5 m, 20 deg down): textured, closed, floor at z = 0."""
+    from vgpnav_env.scenes import load_scene
+
+    T_wc = camera_pose([0.8, 0.6, 1.5], np.radians(30), np.radians(20))
+    with MujocoRenderer(load_scene("home"), CAM) as r:
+        frame = r.render(T_wc)
+    assert frame.rgb.std() > 20.0
+    assert np.isfinite(frame.depth).all()  # walls and ceiling close the view
+    z = CAM.backproject_world(frame.depth, T_wc)[:, 2]
+    assert z.min() > -0.01  # nothing is seen below the floor
+    assert (np.abs(z) < 0.01).mean() > 0.15  # the floor is a good part of the view

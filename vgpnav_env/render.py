@@ -222,8 +222,7 @@ class PyrenderRenderer:
         preset = lighting_for(scene.lighting)
         ambient = _LIGHT_SCALE * np.asarray(preset.ambient, float)
         self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=ambient)
-        for sm in scene.meshes:
-            self._scene.add(pyrender.Mesh.from_trimesh(sm.mesh, material=self._material(sm), smooth=False))
+        self._add_meshes(scene)
         for light in scene_lights(scene):
             self._add_directional(light.direction, light.diffuse)
         K = camera.K
@@ -241,23 +240,49 @@ class PyrenderRenderer:
         self._head_node = self._scene.add(head, pose=np.eye(4))
         self._offscreen = pyrender.OffscreenRenderer(camera.width, camera.height)
 
-    def _material(self, sm):
+    def _add_meshes(self, scene: Scene) -> None:
+        """One primitive per scene ``Material`` (merged geometry: pyrender's cost is per draw call);
+        meshes carrying their own PBR material (mesh files) are added as they are."""
         from trimesh.visual.material import PBRMaterial
 
-        visual_material = getattr(sm.mesh.visual, "material", None)
-        if isinstance(visual_material, PBRMaterial) and sm.material.image is None:
-            return None  # from_trimesh converts the mesh's own PBR material
-        tex = None
-        if sm.material.image is not None:
-            tex = self._pyrender.Texture(
-                source=np.ascontiguousarray(sm.material.image), source_channels="RGB"
+        pyrender = self._pyrender
+        groups: dict[int, list] = {}
+        for sm in scene.meshes:
+            own = getattr(sm.mesh.visual, "material", None)
+            if isinstance(own, PBRMaterial) and sm.material.image is None:
+                self._scene.add(pyrender.Mesh.from_trimesh(sm.mesh, smooth=False))
+            else:
+                groups.setdefault(id(sm.material), []).append(sm)
+        primitives = []
+        for members in groups.values():
+            material = members[0].material
+            tris = np.concatenate([m.mesh.triangles.reshape(-1, 3) for m in members])
+            normals = np.concatenate([np.repeat(m.mesh.face_normals, 3, axis=0) for m in members])
+            uv = None
+            if material.image is not None:
+                uv = np.concatenate(
+                    [np.asarray(m.mesh.visual.uv)[m.mesh.faces].reshape(-1, 2) for m in members]
+                )
+            texture = None
+            if material.image is not None:
+                texture = pyrender.Texture(source=np.ascontiguousarray(material.image), source_channels="RGB")
+            pbr = pyrender.MetallicRoughnessMaterial(
+                baseColorFactor=np.asarray(material.rgba, float),
+                baseColorTexture=texture,
+                metallicFactor=0.0,
+                roughnessFactor=1.0,
+                doubleSided=True,
             )
-        return self._pyrender.MetallicRoughnessMaterial(
-            baseColorFactor=np.asarray(sm.material.rgba, float),
-            baseColorTexture=tex,
-            metallicFactor=0.0,
-            roughnessFactor=1.0,
-        )
+            primitives.append(
+                pyrender.Primitive(
+                    positions=tris.astype(np.float32),
+                    normals=normals.astype(np.float32),
+                    texcoord_0=None if uv is None else uv.astype(np.float32),
+                    material=pbr,
+                )
+            )
+        if primitives:
+            self._scene.add(pyrender.Mesh(primitives))
 
     def _add_directional(self, direction, diffuse) -> None:
         # pyrender lights shine along their node's -z; Lambertian 1/pi is undone by the pi.
