@@ -33,6 +33,14 @@ def free_view(depth: NDArray[np.float32], min_depth: float = 0.5) -> bool:
     return finite.mean() > 0.95 and float(depth[finite].min()) > min_depth
 
 
+def sees(camera: PinholeCamera, T_wc: NDArray[np.float64], depth: NDArray[np.float32], point) -> bool:
+    """Whether ``point`` (W) is inside the image and not occluded (rendered depth agrees within 5%)."""
+    (u, v), z = camera.project_world(T_wc, point)
+    if not (z > 0 and 0 <= u < camera.width - 0.5 and 0 <= v < camera.height - 0.5):
+        return False
+    return abs(float(depth[round(v), round(u)]) - z) < 0.05 * z
+
+
 def sample_trial(
     renderer: MujocoRenderer,
     bounds: NDArray[np.float64],
@@ -60,7 +68,7 @@ def sample_trial(
             yaw = np.arctan2(to_target[1], to_target[0]) + rng.normal(0.0, np.deg2rad(10.0))
             T_wi = camera_pose([*xy, 1.5], yaw, PITCH)
             frame = renderer.render(T_wi)
-            if free_view(frame.depth):
+            if free_view(frame.depth) and sees(camera, T_wi, frame.depth, target):
                 poses.append(T_wi)
                 images.append(frame.rgb)
             if len(poses) == k:

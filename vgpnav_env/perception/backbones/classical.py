@@ -38,7 +38,8 @@ class ClassicalConfig:
     """Knobs of the classical backbone (pixels are full-resolution unless stated)."""
 
     max_keypoints: int = 1500
-    sift_contrast_threshold: float = 0.03
+    sift_contrast_threshold: float = 0.002
+    clahe_clip: float = 0.0
     ratio: float = 0.8
     mutual: bool = True
     max_epipolar_error: float = 1.0
@@ -54,6 +55,7 @@ class ClassicalConfig:
     sweep_planes: int = 64
     sweep_candidates: int = 5
     sweep_references: int = 3
+    sweep_keep_best: int = 2
     ncc_window: int = 7
     depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
@@ -70,8 +72,12 @@ class ClassicalConfig:
             raise ValueError(f"sweep_scale must be in (0, 1], got {self.sweep_scale}")
         if self.sweep_planes < 3 or self.ncc_window < 3 or self.ncc_window % 2 == 0:
             raise ValueError("sweep_planes must be >= 3 and ncc_window an odd number >= 3")
-        if self.sweep_references < 1 or self.sweep_candidates < self.sweep_references:
-            raise ValueError("need 1 <= sweep_references <= sweep_candidates")
+        if (
+            self.sweep_references < 1
+            or self.sweep_candidates < self.sweep_references
+            or self.sweep_keep_best < 1
+        ):
+            raise ValueError("need 1 <= sweep_references <= sweep_candidates and sweep_keep_best >= 1")
 
 
 @dataclass(frozen=True)
@@ -241,10 +247,15 @@ class ClassicalBackbone(Backbone):
         self._sift = cv2.SIFT_create(
             nfeatures=self.config.max_keypoints, contrastThreshold=self.config.sift_contrast_threshold
         )
+        clip = self.config.clahe_clip
+        self._clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 else None
 
     def extract(self, image: NDArray[np.uint8]) -> Features:
         """RootSIFT keypoints of an RGB image (L1-normalise, square root: unit L2 norm)."""
-        keypoints, desc = self._sift.detectAndCompute(grayscale(image), None)
+        gray = grayscale(image)
+        if self._clahe is not None:
+            gray = self._clahe.apply(gray)
+        keypoints, desc = self._sift.detectAndCompute(gray, None)
         if desc is None or len(keypoints) == 0:
             return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
         desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
@@ -420,10 +431,10 @@ class ClassicalBackbone(Backbone):
         inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.sweep_planes)
         n = np.array([0.0, 0.0, 1.0])
         scores = np.empty((cfg.sweep_planes, h, w), np.float32)
+        keep = min(cfg.sweep_keep_best, len(refs))
+        ncc = np.empty((len(refs), h, w), np.float32)
         for p, inv_d in enumerate(inv_depths):
-            total = np.zeros((h, w), np.float32)
-            count = np.zeros((h, w), np.float32)
-            for ref, T in zip(refs, T_iq, strict=True):
+            for r, (ref, T) in enumerate(zip(refs, T_iq, strict=True)):
                 H = K @ (T[:3, :3] + np.outer(T[:3, 3], n) * inv_d) @ K_inv
                 warped = cv2.warpPerspective(
                     ref,
@@ -436,12 +447,14 @@ class ClassicalBackbone(Backbone):
                 mu_w = cv2.boxFilter(warped, -1, window)
                 var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
                 cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
-                ncc = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
-                seen = np.isfinite(ncc)
-                total += np.where(seen, ncc, 0.0)
-                count += seen
+                ncc[r] = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
+            # Occlusion-robust: mean of the best `keep` references that see the pixel (NaN: none).
+            top = -np.sort(-np.where(np.isfinite(ncc), ncc, -np.inf), axis=0)[:keep]
+            seen = np.isfinite(top)
             with np.errstate(invalid="ignore"):
-                scores[p] = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+                scores[p] = np.where(
+                    seen.any(axis=0), np.where(seen, top, 0.0).sum(axis=0) / seen.sum(axis=0), np.nan
+                )
 
         visible = np.isfinite(scores).any(axis=0)
         filled = np.where(np.isfinite(scores), scores, -1.0)
