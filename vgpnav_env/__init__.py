@@ -8,3 +8,13 @@ if _gl in ("egl", "osmesa"):
     os.environ.setdefault("PYOPENGL_PLATFORM", _gl)
 
 __version__ = "0.1.0"
+
+
+def _register_envs() -> None:
+    import gymnasium
+
+    if "VGPNav/PointGoal-v0" not in gymnasium.registry:
+        gymnasium.register("VGPNav/PointGoal-v0", entry_point="vgpnav_env.envs.pointgoal:PointGoalEnv")
+
+
+_register_envs()
