@@ -210,3 +210,15 @@ def test_home_database_view():
     z = CAM.backproject_world(frame.depth, T_wc)[:, 2]
     assert z.min() > -0.01  # nothing is seen below the floor
     assert (np.abs(z) < 0.01).mean() > 0.15  # the floor is a good part of the view
+
+
+def test_pyrender_finalizer_keeps_mujoco_alive(empty_room):
+    """A pyrender renderer dropped without close() must not tear down MuJoCo's EGL display."""
+    import gc
+
+    pr = PyrenderRenderer(empty_room, CAM)
+    pr.render(random_poses(1, 3)[0])
+    del pr
+    gc.collect()
+    with MujocoRenderer(empty_room, CAM) as r:
+        assert np.isfinite(r.render(random_poses(1, 3)[0]).depth).any()

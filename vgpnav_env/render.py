@@ -216,6 +216,7 @@ class PyrenderRenderer:
     """
 
     def __init__(self, scene: Scene, camera: PinholeCamera) -> None:
+        self._offscreen = None
         pyrender = _import_pyrender()
         self.camera = camera
         self._pyrender = pyrender
@@ -321,16 +322,26 @@ class PyrenderRenderer:
         # MuJoCo's contexts in this process and would break them: free only our context.
         from OpenGL import EGL
 
-        offscreen._platform.make_current()
+        platform = offscreen._platform
+        platform.make_current()
         offscreen._renderer.delete()
         EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
-        EGL.eglDestroyContext(display, offscreen._platform._egl_context)
+        EGL.eglDestroyContext(display, platform._egl_context)
+        # Disarm pyrender's own finalizers (they would terminate the shared display).
+        platform._egl_context = platform._egl_display = None
+        offscreen._renderer = offscreen._platform = None
 
     def __enter__(self) -> PyrenderRenderer:
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown may have torn GL down already
+            pass
 
 
 def make_renderer(
