@@ -44,6 +44,11 @@ def test_straight_line_in_open_space(start, goal):
     assert path_length(raw) >= path_length(path) - 1e-9
 
 
+def test_start_and_goal_in_one_cell():
+    path = shortest_path(open_grid(), SPEC, (1.01, 1.01), (1.04, 1.02))
+    np.testing.assert_allclose(path, [[1.01, 1.01], [1.04, 1.02]])
+
+
 def test_path_goes_around_wall_and_stays_traversable():
     grid = wall_grid()
     start, goal = (1.0, 1.0), (1.0, 4.0)

@@ -32,6 +32,9 @@ def test_surface_points_density_and_bounds(tiny_scene):
     # Every point lies on some mesh surface: the floor top is at z = 0, walls at x = 0 / 4 ...
     on_floor = np.abs(pts[:, 2]) < 1e-9
     assert on_floor.sum() > 0.5 * ROOM_X * ROOM_Y / 0.05**2
+    no_floor = surface_points(tiny_scene, spacing=0.05, exclude_categories=("floor",))
+    floor_area = tiny_scene.mesh("floor").mesh.area
+    assert len(no_floor) == pytest.approx((area - floor_area) / 0.05**2, rel=0.01)
 
 
 @pytest.mark.parametrize("radius", [0.18, RADIUS])

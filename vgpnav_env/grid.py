@@ -151,10 +151,8 @@ def shortest_path(
     if not np.isfinite(cumulative[goal]):
         return None
     cells = np.asarray(mcp.traceback(goal))
-    path = spec.cell_to_world(cells)
+    path = spec.cell_to_world(cells if len(cells) > 1 else np.repeat(cells, 2, axis=0))
     path[0], path[-1] = np.asarray(start_xy, float), np.asarray(goal_xy, float)
-    if len(path) == 1:
-        path = np.stack([path[0], np.asarray(goal_xy, float)])
     return _shortcut(traversable, spec, path) if smooth else path
 
 

@@ -49,12 +49,19 @@ def _sample(mesh: trimesh.Trimesh, spacing: float, rng: np.random.Generator, fac
     return points, chosen
 
 
-def surface_points(scene: Scene, spacing: float = 0.02, seed: int = 0) -> NDArray[np.float64]:
-    """Dense surface sample (N, 3) in W of all scene meshes, ~one point per ``spacing``^2 of area."""
+def surface_points(
+    scene: Scene, spacing: float = 0.02, seed: int = 0, exclude_categories: tuple[str, ...] = ()
+) -> NDArray[np.float64]:
+    """Dense surface sample (N, 3) in W of the scene's meshes, ~one point per ``spacing``^2 of area.
+
+    ``exclude_categories`` drops meshes by ``SceneMesh.category`` (e.g. ``("ceiling",)``).
+    """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive metres, got {spacing}")
     rng = np.random.default_rng(seed)
-    parts = [_sample(sm.mesh, spacing, rng)[0] for sm in scene.meshes]
+    parts = [
+        _sample(sm.mesh, spacing, rng)[0] for sm in scene.meshes if sm.category not in exclude_categories
+    ]
     return np.concatenate(parts, axis=0) if parts else np.zeros((0, 3))
 
 
