@@ -1,0 +1,196 @@
+"""A* waypoint-following agent over an occupancy map, with the env's discrete actions.
+
+The agent plans on a 2D obstacle grid (``True`` = obstacle; free and unknown cells are both
+traversable: optimistic planning) inflated by the robot radius, from a pose estimate
+(x, y, yaw) to a goal (x, y), all in W (metres, radians). It turns toward a waypoint about
+``lookahead`` metres ahead on the path when the heading error exceeds half a turn step and
+otherwise drives forward; it stops when the (estimated) goal distance is below ``goal_radius``.
+It replans when the map, the goal or the grid changes, when it strays from the path, and when a
+forward action made no progress (it then marks the cell ahead as an obstacle).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import distance_transform_edt
+
+from vgpnav_env.geometry import wrap_angle
+from vgpnav_env.grid import GridSpec, line_of_sight, shortest_path
+
+logger = logging.getLogger(__name__)
+
+STOP, FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
+
+
+def inflate(obstacles: NDArray[np.bool_], resolution: float, radius: float) -> NDArray[np.bool_]:
+    """Cells whose centre lies within ``radius`` metres of an obstacle cell centre (or on one)."""
+    if not obstacles.any():
+        return np.zeros_like(obstacles, dtype=bool)
+    return distance_transform_edt(~obstacles) * resolution <= radius
+
+
+def _densify(path: NDArray[np.float64], spacing: float) -> NDArray[np.float64]:
+    """Points every ``spacing`` metres along a polyline (N, 2), vertices included."""
+    out = [path[:1]]
+    for a, b in zip(path[:-1], path[1:], strict=True):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
+        out.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
+    return np.concatenate(out)
+
+
+class AStarAgent:
+    """Plans with ``grid.shortest_path`` and follows the path with discrete actions."""
+
+    def __init__(
+        self,
+        robot_radius: float = 0.2,
+        inflation_margin: float = 0.03,
+        goal_radius: float = 0.35,
+        lookahead: float = 0.5,
+        forward_step: float = 0.25,
+        turn_step_deg: float = 15.0,
+        min_progress: float = 0.4,
+        off_path_distance: float = 0.5,
+    ) -> None:
+        if robot_radius <= 0 or goal_radius <= 0 or lookahead <= 0 or forward_step <= 0:
+            raise ValueError("robot_radius, goal_radius, lookahead and forward_step must be positive metres")
+        self.robot_radius = float(robot_radius)
+        self.inflation = float(robot_radius + inflation_margin)
+        self.goal_radius = float(goal_radius)
+        self.lookahead = float(lookahead)
+        self.forward_step = float(forward_step)
+        self.turn_step = float(np.radians(turn_step_deg))
+        self.min_progress = float(min_progress)
+        self.off_path_distance = float(off_path_distance)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the path, the blocked cells and the last action (call at every episode start)."""
+        self.path: NDArray[np.float64] | None = None
+        self._dense: NDArray[np.float64] | None = None
+        self._along: NDArray[np.float64] | None = None
+        self._free: NDArray[np.bool_] | None = None
+        self._spec: GridSpec | None = None
+        self.blocked_points: list[NDArray[np.float64]] = []
+        self.replans = 0
+        self._plan_key: tuple | None = None
+        self._plan_map: NDArray[np.bool_] | None = None
+        self._last_action: int | None = None
+        self._last_pose: NDArray[np.float64] | None = None
+
+    # -- planning --------------------------------------------------------------------------
+    def traversable(self, obstacles: NDArray[np.bool_], spec: GridSpec, pose: ArrayLike) -> NDArray[np.bool_]:
+        """Cells the robot centre may visit: not within the inflated obstacles (blocked cells
+        included), with the robot's own footprint always traversable so a plan can start."""
+        occ = obstacles.copy()
+        if self.blocked_points:
+            cells = spec.world_to_cell(np.asarray(self.blocked_points))
+            cells = cells[spec.contains(cells)]
+            occ[cells[:, 0], cells[:, 1]] = True
+        free = ~inflate(occ, spec.resolution, self.inflation)
+        centres = spec.centres()
+        near = np.linalg.norm(centres - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
+        free[near & ~occ] = True
+        return free
+
+    @staticmethod
+    def _reachable_target(
+        free: NDArray[np.bool_], spec: GridSpec, goal: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """The goal, or the centre of the nearest traversable cell when the goal cell is not."""
+        cell = spec.world_to_cell(goal)
+        if spec.contains(cell) and free[cell[0], cell[1]]:
+            return goal
+        idx = np.argwhere(free)
+        if len(idx) == 0:
+            return goal
+        centres = spec.cell_to_world(idx)
+        return centres[np.argmin(np.linalg.norm(centres - goal, axis=1))]
+
+    def plan(self, pose: ArrayLike, obstacles: NDArray[np.bool_], spec: GridSpec, goal: ArrayLike) -> None:
+        """Recompute ``self.path`` (world (N, 2) waypoints, None if no path exists)."""
+        pose = np.asarray(pose, float)
+        goal = np.asarray(goal, float)[:2]
+        free = self.traversable(obstacles, spec, pose)
+        target = self._reachable_target(free, spec, goal)
+        try:
+            path = shortest_path(free, spec, pose[:2], target)
+        except ValueError:  # the pose estimate lies off the map
+            path = None
+        self.replans += 1
+        self._free, self._spec = free, spec
+        if path is None or len(path) == 0:
+            self.path = self._dense = self._along = None
+            logger.debug("no path from %s to %s", pose[:2], target)
+            return
+        self.path = np.asarray(path, float)[:, :2]
+        self._dense = _densify(self.path, 0.5 * spec.resolution)
+        self._along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(self._dense, axis=0), axis=1))])
+
+    # -- acting ----------------------------------------------------------------------------
+    def _waypoint(self, xy: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The farthest path point at most ``lookahead`` metres (along the path) past the point
+        closest to the robot that the robot sees in a straight traversable line."""
+        dense, along = self._dense, self._along
+        i = int(np.argmin(np.linalg.norm(dense - xy, axis=1)))
+        j = int(np.searchsorted(along, along[i] + self.lookahead, side="right")) - 1
+        for k in range(j, i, -1):
+            if line_of_sight(self._free, self._spec, xy, dense[k]):
+                return dense[k]
+        return dense[min(i + 1, len(dense) - 1)]
+
+    def _turn_or_forward(self, pose: NDArray[np.float64], target: NDArray[np.float64]) -> int:
+        dx, dy = target - pose[:2]
+        error = float(wrap_angle(np.arctan2(dy, dx) - pose[2]))
+        if abs(error) > 0.5 * self.turn_step:
+            return TURN_LEFT if error > 0 else TURN_RIGHT
+        return FORWARD
+
+    def act(self, pose: ArrayLike, obstacles: ArrayLike, spec: GridSpec, goal: ArrayLike) -> int:
+        """Next discrete action (0 stop, 1 forward, 2 left, 3 right) from the estimated ``pose``,
+        the obstacle grid (bool, ``spec.shape``) and the goal (x, y)."""
+        pose = np.asarray(pose, float)
+        goal = np.asarray(goal, float)[:2]
+        obstacles = np.asarray(obstacles, bool)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"pose must be a finite (x, y, yaw), got {pose}")
+        if obstacles.shape != spec.shape:
+            raise ValueError(
+                f"obstacle grid shape {obstacles.shape} does not match the grid spec {spec.shape}"
+            )
+        blocked = False
+        if self._last_action == FORWARD and self._last_pose is not None:
+            moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
+            if moved < self.min_progress * self.forward_step:
+                ahead = self.robot_radius + 0.5 * spec.resolution
+                yaw = self._last_pose[2]
+                self.blocked_points.append(pose[:2] + ahead * np.array([np.cos(yaw), np.sin(yaw)]))
+                blocked = True
+        action = self._decide(pose, obstacles, spec, goal, blocked)
+        self._last_action, self._last_pose = action, pose
+        return action
+
+    def _decide(
+        self, pose: NDArray, obstacles: NDArray[np.bool_], spec: GridSpec, goal: NDArray, blocked: bool
+    ) -> int:
+        if np.linalg.norm(goal - pose[:2]) <= self.goal_radius:
+            return STOP
+        key = (spec, tuple(goal))
+        changed = (
+            self._plan_map is None or key != self._plan_key or not np.array_equal(obstacles, self._plan_map)
+        )
+        strayed = (
+            self._dense is not None
+            and np.min(np.linalg.norm(self._dense - pose[:2], axis=1)) > self.off_path_distance
+        )
+        if changed or blocked or strayed or self.path is None:
+            self.plan(pose, obstacles, spec, goal)
+            self._plan_key, self._plan_map = key, obstacles.copy()
+        if self.path is None:
+            return self._turn_or_forward(pose, goal)
+        if np.linalg.norm(self.path[-1] - pose[:2]) < 0.5 * self.forward_step:
+            return STOP  # at the reachable point closest to an unreachable goal
+        return self._turn_or_forward(pose, self._waypoint(pose[:2]))

@@ -1,0 +1,35 @@
+"""The oracle: the A* agent fed the TRUE pose and the ground-truth obstacle map (the upper bound).
+
+It reads ``info["pose"]`` and the env's ground-truth map of the layout it drives in; every cell
+that is not free floor counts as an obstacle. Nothing here is available to a real agent.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from vgpnav_env.agents.astar import AStarAgent
+
+
+class OracleAgent:
+    """``act(obs, info)`` with the true pose and the ground-truth map of ``env``'s layout."""
+
+    def __init__(self, env: gym.Env, **agent_kwargs: Any) -> None:
+        base = env.unwrapped
+        if not hasattr(base, "ground_truth"):
+            raise TypeError(f"the oracle needs a VGPNav point-goal env, got {type(base).__name__}")
+        gt = base.ground_truth
+        agent_kwargs.setdefault("robot_radius", base.robot_radius)
+        agent_kwargs.setdefault("forward_step", base.forward_step)
+        agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
+        self.spec = gt.spec
+        self.obstacles = ~np.asarray(gt.free, bool)
+        self.agent = AStarAgent(**agent_kwargs)
+
+    def reset(self) -> None:
+        self.agent.reset()
+
+    def act(self, obs: dict[str, Any], info: dict[str, Any]) -> int:
+        return self.agent.act(info["pose"], self.obstacles, self.spec, obs["goal"])

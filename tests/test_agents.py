@@ -1,0 +1,147 @@
+"""A* agent (unit tests on synthetic grids with a kinematic robot) and the oracle on ``home``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import distance_transform_edt
+from vgpnav_env.agents.astar import FORWARD, STOP, TURN_LEFT, TURN_RIGHT, AStarAgent, inflate
+
+from vgpnav_env.grid import GridSpec
+
+RES = 0.05
+RADIUS = 0.2
+
+
+def room(with_wall: bool = True) -> tuple[np.ndarray, GridSpec]:
+    """6 m x 6 m room (border walls); optional wall at y = 3 m with a 1 m gap at x in [4.5, 5.5]."""
+    spec = GridSpec((0.0, 0.0), RES, (120, 120))
+    occ = np.zeros(spec.shape, bool)
+    occ[:2], occ[-2:], occ[:, :2], occ[:, -2:] = True, True, True, True
+    if with_wall:
+        occ[59:61, :90] = True
+        occ[59:61, 110:] = True
+    return occ, spec
+
+
+class KinematicRobot:
+    """Executes discrete actions exactly; a forward step stops where the hull would touch ``occ``."""
+
+    def __init__(self, occ: np.ndarray, spec: GridSpec, pose) -> None:
+        self.clearance = distance_transform_edt(~occ) * spec.resolution
+        self.spec = spec
+        self.pose = np.asarray(pose, float)
+        self.collisions = 0
+        self.history = [self.pose[:2]]
+
+    def free(self, xy) -> bool:
+        r, c = self.spec.world_to_cell(xy)
+        return bool(self.clearance[r, c] > RADIUS)
+
+    def step(self, action: int) -> None:
+        x, y, yaw = self.pose
+        if action == FORWARD:
+            for _ in range(5):
+                nxt = np.array([x, y]) + 0.05 * np.array([np.cos(yaw), np.sin(yaw)])
+                if not self.free(nxt):
+                    self.collisions += 1
+                    break
+                x, y = nxt
+        elif action in (TURN_LEFT, TURN_RIGHT):
+            yaw += np.radians(15) * (1 if action == TURN_LEFT else -1)
+        self.pose = np.array([x, y, yaw])
+        self.history.append(self.pose[:2])
+
+
+def drive(
+    agent: AStarAgent, robot: KinematicRobot, agent_map: np.ndarray, spec: GridSpec, goal, max_steps=400
+):
+    agent.reset()
+    for step in range(max_steps):
+        action = agent.act(robot.pose, agent_map, spec, goal)
+        if action == STOP:
+            return step
+        robot.step(action)
+    return None
+
+
+def test_inflate_marks_cells_within_radius():
+    occ = np.zeros((21, 21), bool)
+    occ[10, 10] = True
+    inf = inflate(occ, 0.05, 0.2)
+    assert inf[10, 14] and not inf[10, 15] and inf[13, 12] and not inf[14, 14]
+    assert not inflate(np.zeros((3, 3), bool), 0.05, 0.2).any()
+
+
+def test_agent_reaches_goal_through_gap_on_known_map():
+    occ, spec = room()
+    robot = KinematicRobot(occ, spec, (1.0, 1.0, 0.0))
+    agent = AStarAgent(robot_radius=RADIUS)
+    goal = (1.0, 5.0)
+    steps = drive(agent, robot, occ, spec, goal)
+    assert steps is not None
+    assert np.linalg.norm(robot.pose[:2] - goal) <= agent.goal_radius
+    assert robot.collisions == 0
+    # The robot went through the gap (x in [4.5, 5.5]) around the wall.
+    track = np.asarray(robot.history)
+    crossing = track[np.argmin(np.abs(track[:, 1] - 3.0))]
+    assert 4.5 <= crossing[0] <= 5.5
+
+
+def test_agent_replans_when_blocked_by_unmapped_wall():
+    occ, spec = room()
+    robot = KinematicRobot(occ, spec, (1.0, 1.0, np.pi / 2))
+    agent = AStarAgent(robot_radius=RADIUS)
+    empty_map, _ = room(with_wall=False)  # optimistic: the agent does not know the wall
+    goal = (1.0, 5.0)
+    steps = drive(agent, robot, empty_map, spec, goal, max_steps=600)
+    assert steps is not None, "agent never reached the goal"
+    assert np.linalg.norm(robot.pose[:2] - goal) <= agent.goal_radius
+    assert robot.collisions >= 1 and len(agent.blocked_points) >= 1
+    assert agent.replans >= 2
+
+
+def test_agent_replans_when_map_changes_and_turns_toward_goal():
+    occ, spec = room(with_wall=False)
+    agent = AStarAgent(robot_radius=RADIUS)
+    assert agent.act((1.0, 1.0, 0.0), occ, spec, (1.0, 4.0)) == TURN_LEFT
+    assert agent.act((1.0, 1.0, np.pi), occ, spec, (1.0, 4.0)) == TURN_RIGHT
+    assert agent.act((1.0, 1.0, np.pi / 2), occ, spec, (1.0, 4.0)) == FORWARD
+    n = agent.replans
+    assert agent.act((1.0, 1.25, np.pi / 2), occ, spec, (1.0, 4.0)) == FORWARD
+    assert agent.replans == n  # same map, progress along the path: no replanning
+    changed = occ.copy()
+    changed[40, 10:30] = True
+    agent.act((1.0, 1.5, np.pi / 2), changed, spec, (1.0, 4.0))
+    assert agent.replans == n + 1
+    assert agent.path[:, 0].max() > 1.5  # the new path goes around the new wall's end at x = 1.5
+    assert agent.act((1.0, 3.8, 0.0), occ, spec, (1.0, 4.0)) == STOP
+
+
+def test_agent_bad_inputs():
+    occ, spec = room()
+    agent = AStarAgent()
+    with pytest.raises(ValueError, match="pose"):
+        agent.act((1.0, 1.0), occ, spec, (2.0, 2.0))
+    with pytest.raises(ValueError, match="shape"):
+        agent.act((1.0, 1.0, 0.0), occ[:10], spec, (2.0, 2.0))
+
+
+def test_oracle_reaches_95_percent_of_20_home_episodes():
+    import gymnasium as gym
+    from vgpnav_env.agents.oracle import OracleAgent
+    from vgpnav_env.eval.navigation import run_episode, summarize
+
+    env = gym.make(
+        "VGPNav/PointGoal-v0", scene="home", layout="changed", image_size=(64, 48), render_rgb=False
+    )
+    try:
+        oracle = OracleAgent(env)
+        records = [run_episode(env, oracle, seed, seed) for seed in range(20)]
+    finally:
+        env.close()
+    summary = summarize(records)
+    assert summary["episodes"] == 20
+    assert summary["success_rate"] >= 0.95, [(r.seed, r.failure) for r in records if not r.success]
+    assert summary["spl"] >= 0.8
+    assert summary["collisions_per_episode"] <= 1.0
