@@ -24,6 +24,11 @@ from typing import NoReturn
 #: Command name ("build", or "group name") -> (module path, one-line help).
 COMMANDS: dict[str, tuple[str, str]] = {
     "build": ("vgpnav_env.build", "render and save a scene's database and query runs"),
+    "eval navigation": (
+        "vgpnav_env.eval.navigation",
+        "point-goal success rate, SPL and soft SPL of an agent",
+    ),
+    "train ppo": ("vgpnav_env.agents.ppo", "train PPO (stable-baselines3) on VGP-Nav observations"),
 }
 #: One-line help of command groups.
 GROUPS: dict[str, str] = {
@@ -57,7 +62,7 @@ def size_arg(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"malformed size {text!r}; {allowed}")
     w, h = (int(p) for p in parts)
     if not (1 <= w <= MAX_WIDTH and 1 <= h <= MAX_HEIGHT):
-        raise argparse.ArgumentTypeError(f"size {w}x{h} out of range; {allowed}")
+        raise argparse.ArgumentTypeError(f"size {text!r} out of range; {allowed}")
     return w, h
 
 

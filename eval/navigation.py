@@ -1,0 +1,352 @@
+"""Navigation protocol: success rate, SPL and soft SPL of an agent over point-goal episodes.
+
+``vgpnav eval navigation SCENE --agent astar|oracle|ppo:PATH --backbone classical|simulated
+--episodes N --out DIR [--seed S] [--size WxH]`` writes ``DIR/report.json`` (aggregates and one
+record per episode), ``DIR/report.md`` and a top-down picture of every trajectory under
+``DIR/trajectories/``. Episode ``i`` is ``reset(seed=seed + i)`` on the scene's changed layout, so
+every agent sees the same start/goal pairs.
+
+Failure reasons: ``timeout`` (no stop within the step budget), ``stopped-too-far`` (stop farther
+than the success distance) and ``lost`` (a perception agent whose pose estimate was not localized
+on at least half of the steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import gymnasium as gym
+import numpy as np
+from tqdm import tqdm
+from vgpnav_env.agents.astar import AStarAgent
+from vgpnav_env.agents.oracle import OracleAgent
+from vgpnav_env.eval.report import markdown_table, write_report
+
+from vgpnav_env.cli import seed_arg, size_arg
+
+logger = logging.getLogger(__name__)
+
+ENV_ID = "VGPNav/PointGoal-v0"
+FAILURES = ("timeout", "stopped-too-far", "lost")
+
+
+class Policy(Protocol):
+    """What the protocol drives: ``reset()`` per episode, ``act(obs, info) -> action`` per step."""
+
+    def reset(self) -> None: ...
+
+    def act(self, obs: Any, info: dict[str, Any]) -> Any: ...
+
+
+class PerceptionAStar:
+    """The A* agent on the VGP-Nav wrapper's estimated pose and fused obstacle map.
+
+    Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing) and the wrapper's
+    ``info["obstacles"]`` (bool grid) with ``info["map_spec"]`` (``GridSpec``).
+    """
+
+    def __init__(self, env: gym.Env, **agent_kwargs: Any) -> None:
+        base = env.unwrapped
+        agent_kwargs.setdefault("robot_radius", base.robot_radius)
+        agent_kwargs.setdefault("forward_step", base.forward_step)
+        agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
+        self.agent = AStarAgent(**agent_kwargs)
+
+    def reset(self) -> None:
+        self.agent.reset()
+
+    def act(self, obs: dict[str, Any], info: dict[str, Any]) -> int:
+        x, y, yaw = np.asarray(obs["pose"], float)
+        dist, bearing = np.asarray(obs["goal_rel"], float)
+        goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
+        return self.agent.act((x, y, yaw), info["obstacles"], info["map_spec"], goal)
+
+
+class SB3Policy:
+    """A saved stable-baselines3 policy acting deterministically."""
+
+    def __init__(self, path: str | Path) -> None:
+        from stable_baselines3 import PPO
+
+        self.model = PPO.load(str(path), device="cpu")
+
+    def reset(self) -> None:
+        return None
+
+    def act(self, obs: Any, info: dict[str, Any]) -> Any:
+        action, _ = self.model.predict(obs, deterministic=True)
+        return int(action) if np.ndim(action) == 0 else action
+
+
+def perception_wrapper(backbone: str) -> Callable[[gym.Env], gym.Env]:
+    """``env -> VGPNavObservation(env, backbone=backbone)``; clear error if the wrapper is missing."""
+    try:
+        from vgpnav_env.wrappers import VGPNavObservation
+    except ImportError as e:
+        raise RuntimeError(
+            "agents that use perception need vgpnav_env.wrappers.VGPNavObservation, which is not "
+            f"available ({e}); use --agent oracle"
+        ) from e
+    return lambda env: VGPNavObservation(env, backbone=backbone)
+
+
+def make_agent(
+    agent: str, backbone: str
+) -> tuple[Callable[[gym.Env], Policy], Callable[[gym.Env], gym.Env] | None, dict[str, Any]]:
+    """(policy factory over the env, observation wrapper or None, env keyword arguments the agent
+    needs) for an ``--agent`` string."""
+    if agent == "oracle":
+        return OracleAgent, None, {"render_rgb": False}
+    if agent == "astar":
+        return PerceptionAStar, perception_wrapper(backbone), {}
+    if agent.startswith("ppo:"):
+        from vgpnav_env.agents.ppo import load_config, model_path
+
+        path = model_path(agent[4:])
+        config = load_config(path)
+        wrapper = perception_wrapper(config["backbone"]) if config.get("backbone") else None
+        env_kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
+        return (lambda env: SB3Policy(path)), wrapper, env_kwargs
+    raise ValueError(f"unknown agent {agent!r}; allowed: astar, oracle, ppo:PATH")
+
+
+@dataclass
+class EpisodeRecord:
+    """One evaluated episode (metres, radians; failure None on success)."""
+
+    index: int
+    seed: int
+    start: list[float]
+    goal: list[float]
+    shortest_path_length: float
+    success: bool
+    spl: float
+    soft_spl: float
+    steps: int
+    collisions: int
+    travelled: float
+    final_distance: float
+    final_euclidean_distance: float
+    failure: str | None
+    localization_error_m: float | None
+    lost_fraction: float | None
+    trajectory: list[list[float]] = field(repr=False)
+    estimated_trajectory: list[list[float]] | None = field(default=None, repr=False)
+
+
+def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> EpisodeRecord:
+    """Drive one episode ``reset(seed=seed)`` to its end with ``policy``."""
+    obs, info = env.reset(seed=seed)
+    policy.reset()
+    estimated: list[list[float]] = []
+    errors: list[float] = []
+    localized: list[bool] = []
+    done = False
+    while not done:
+        if isinstance(obs, dict) and "pose" in obs:
+            est = np.asarray(obs["pose"], float)
+            estimated.append(est.tolist())
+            errors.append(float(np.linalg.norm(est[:2] - info["pose"][:2])))
+            localized.append(bool(np.asarray(obs.get("localized", 1)).reshape(-1)[0]))
+        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+        done = terminated or truncated
+    lost_fraction = 1.0 - float(np.mean(localized)) if localized else None
+    if info["success"]:
+        failure = None
+    elif lost_fraction is not None and lost_fraction >= 0.5:
+        failure = "lost"
+    elif info["stopped"]:
+        failure = "stopped-too-far"
+    else:
+        failure = "timeout"
+    return EpisodeRecord(
+        index=index,
+        seed=seed,
+        start=[float(v) for v in info["start"]],
+        goal=[float(v) for v in info["goal"]],
+        shortest_path_length=float(info["shortest_path_length"]),
+        success=bool(info["success"]),
+        spl=float(info["spl"]),
+        soft_spl=float(info["soft_spl"]),
+        steps=int(info["steps"]),
+        collisions=int(info["collisions"]),
+        travelled=float(info["travelled"]),
+        final_distance=float(info["distance_to_goal"]),
+        final_euclidean_distance=float(info["euclidean_distance_to_goal"]),
+        failure=failure,
+        localization_error_m=float(np.mean(errors)) if errors else None,
+        lost_fraction=lost_fraction,
+        trajectory=np.asarray(env.unwrapped.trajectory).round(4).tolist(),
+        estimated_trajectory=estimated or None,
+    )
+
+
+def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
+    """Aggregate metrics over episode records."""
+    n = len(records)
+    loc = [r.localization_error_m for r in records if r.localization_error_m is not None]
+    return {
+        "episodes": n,
+        "success_rate": float(np.mean([r.success for r in records])) if n else 0.0,
+        "spl": float(np.mean([r.spl for r in records])) if n else 0.0,
+        "soft_spl": float(np.mean([r.soft_spl for r in records])) if n else 0.0,
+        "collisions_per_episode": float(np.mean([r.collisions for r in records])) if n else 0.0,
+        "mean_steps": float(np.mean([r.steps for r in records])) if n else 0.0,
+        "mean_localization_error_m": float(np.mean(loc)) if loc else None,
+        "failures": {f: sum(r.failure == f for r in records) for f in FAILURES},
+    }
+
+
+def plot_trajectory(env: gym.Env, record: EpisodeRecord, path: Path) -> None:
+    """Top-down picture of one episode over the ground-truth map (matplotlib PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    gt = env.unwrapped.ground_truth
+    spec = gt.spec
+    img = np.full(spec.shape, 0.15)
+    img[gt.free] = 0.75
+    img[env.unwrapped.world.navigable] = 1.0
+    img[gt.obstacle] = 0.4
+    x0, y0 = spec.origin
+    extent = (x0, x0 + spec.shape[1] * spec.resolution, y0, y0 + spec.shape[0] * spec.resolution)
+    fig, ax = plt.subplots(figsize=(6, 6 * spec.shape[0] / max(spec.shape[1], 1) + 0.5))
+    ax.imshow(img, cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
+    traj = np.asarray(record.trajectory)
+    ax.plot(traj[:, 0], traj[:, 1], "-", color="tab:green", lw=1.5, label="true")
+    if record.estimated_trajectory:
+        est = np.asarray(record.estimated_trajectory)
+        ax.plot(est[:, 0], est[:, 1], "--", color="tab:orange", lw=1.0, label="estimated")
+    ax.plot(*record.start[:2], "o", color="tab:cyan", label="start")
+    ax.plot(*record.goal, "*", color="tab:purple", ms=12, label="goal")
+    ax.add_patch(
+        plt.Circle(record.goal, env.unwrapped.success_distance, fill=False, ls=":", color="tab:purple")
+    )
+    outcome = "success" if record.success else record.failure
+    ax.set_title(f"episode {record.index} (seed {record.seed}): {outcome}, SPL {record.spl:.2f}")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=7)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def evaluate_navigation(
+    scene: str,
+    agent: str = "oracle",
+    backbone: str = "classical",
+    episodes: int = 20,
+    seed: int = 0,
+    size: tuple[int, int] = (320, 240),
+    out_dir: str | Path | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the protocol; returns the report dict (also written to ``out_dir`` if given)."""
+    if episodes <= 0:
+        raise ValueError(f"episodes must be positive, got {episodes}")
+    make_policy, wrapper, agent_env_kwargs = make_agent(agent, backbone)
+    kwargs = {"scene": scene, "layout": "changed", "image_size": tuple(size), **agent_env_kwargs}
+    kwargs.update(env_kwargs or {})
+    env = gym.make(ENV_ID, **kwargs)
+    if wrapper is not None:
+        env = wrapper(env)
+    policy = make_policy(env)
+    records: list[EpisodeRecord] = []
+    try:
+        for i in tqdm(range(episodes), desc=f"navigation {scene} {agent}", disable=not progress):
+            record = run_episode(env, policy, seed + i, i)
+            records.append(record)
+            if out_dir is not None:
+                plot_trajectory(env, record, Path(out_dir) / "trajectories" / f"episode_{i:03d}.png")
+    finally:
+        env.close()
+    report = {
+        "protocol": "navigation",
+        "scene": scene,
+        "layout": kwargs["layout"],
+        "agent": agent,
+        "backbone": backbone if wrapper is not None else None,
+        "seed": seed,
+        "image_size": list(size),
+        **summarize(records),
+        "records": [asdict(r) for r in records],
+    }
+    if out_dir is not None:
+        rows = [
+            (
+                r.index,
+                r.seed,
+                r.shortest_path_length,
+                r.success,
+                r.spl,
+                r.soft_spl,
+                r.steps,
+                r.collisions,
+                r.final_euclidean_distance,
+                r.failure or "",
+                r.localization_error_m,
+            )
+            for r in records
+        ]
+        table = markdown_table(
+            [
+                "#",
+                "seed",
+                "shortest (m)",
+                "success",
+                "SPL",
+                "soft SPL",
+                "steps",
+                "collisions",
+                "final d (m)",
+                "failure",
+                "loc. err (m)",
+            ],
+            rows,
+        )
+        pictures = "\n".join(f"![episode {r.index}](trajectories/episode_{r.index:03d}.png)" for r in records)
+        write_report(
+            out_dir,
+            f"Navigation: {scene} ({agent})",
+            report,
+            sections=["## Episodes\n\n" + table, "## Trajectories\n\n" + pictures],
+        )
+    return report
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """CLI arguments of ``vgpnav eval navigation``."""
+    parser.add_argument("scene", help="built-in scene name (e.g. home, hospital) or scene source")
+    parser.add_argument("--agent", default="astar", help="astar | oracle | ppo:PATH (default astar)")
+    parser.add_argument("--backbone", default="classical", choices=["classical", "simulated"])
+    parser.add_argument("--episodes", type=int, default=20, help="number of start/goal pairs")
+    parser.add_argument("--out", required=True, type=Path, help="report directory")
+    parser.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i")
+    parser.add_argument("--size", type=size_arg, default=(320, 240), help="camera image WxH")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry point of ``vgpnav eval navigation``; returns the process exit code."""
+    report = evaluate_navigation(
+        args.scene, args.agent, args.backbone, args.episodes, args.seed, args.size, out_dir=args.out
+    )
+    logger.info(
+        "navigation %s %s: SR %.2f, SPL %.2f over %d episodes -> %s",
+        args.scene,
+        args.agent,
+        report["success_rate"],
+        report["spl"],
+        report["episodes"],
+        args.out,
+    )
+    return 0
