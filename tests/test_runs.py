@@ -108,11 +108,11 @@ def test_interrupted_save_keeps_previous_run(tmp_path: Path, monkeypatch: pytest
     calls = {"n": 0}
     real = runs._write_bytes
 
-    def failing(p: Path, data: bytes) -> None:
+    def failing(p: Path, data: bytes, sync: bool = True) -> None:
         calls["n"] += 1
         if calls["n"] == 3:
             raise OSError("disk full (simulated)")
-        real(p, data)
+        real(p, data, sync)
 
     monkeypatch.setattr(runs, "_write_bytes", failing)
     with pytest.raises(OSError, match="simulated"):

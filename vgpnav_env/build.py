@@ -45,7 +45,13 @@ from vgpnav_env.runs import (
 )
 from vgpnav_env.scenes import load_scene, scene_slug
 from vgpnav_env.scenes.scene import Scene
-from vgpnav_env.trajectories import DATABASE_HEIGHT, PITCH_RANGE_DEG, QUERY_HEIGHT, coverage_trajectory
+from vgpnav_env.trajectories import (
+    DATABASE_HEIGHT,
+    PITCH_RANGE_DEG,
+    QUERY_HEIGHT,
+    TRAJECTORY_VERSION,
+    coverage_trajectory,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -61,14 +67,18 @@ TRAJECTORIES: dict[str, dict[str, Any]] = {
         "spacing": 0.3,
         "height": DATABASE_HEIGHT,
         "pitch_deg": PITCH_RANGE_DEG,
-        "cover_spacing": 1.5,
+        "cover_spacing": 2.0,
+        "max_turn_deg": 45.0,
+        "look_around_prob": 0.2,
+        "yaw_jitter_deg": 10.0,
     },
     "query": {
         "spacing": 0.5,
         "height": QUERY_HEIGHT,
         "pitch_deg": PITCH_RANGE_DEG,
-        "cover_spacing": 2.0,
-        "look_around_prob": 0.1,
+        "cover_spacing": 2.5,
+        "max_turn_deg": 45.0,
+        "look_around_prob": 0.0,
         "yaw_jitter_deg": 20.0,
     },
 }
@@ -126,6 +136,7 @@ def build_parameters(
             k: {n: list(v) if isinstance(v, tuple) else v for n, v in t.items()}
             for k, t in TRAJECTORIES.items()
         },
+        "trajectory_version": TRAJECTORY_VERSION,
         "run_format_version": RUN_VERSION,
         "build_version": BUILD_VERSION,
     }

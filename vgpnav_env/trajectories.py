@@ -22,10 +22,16 @@ from skimage.graph import MCP_Geometric
 from vgpnav_env.geometry import camera_pose, wrap_angle
 from vgpnav_env.grid import GridSpec
 
+#: Bumped whenever the planner's output for given arguments changes (invalidates cached builds).
+TRAJECTORY_VERSION = 2
 #: Camera height (mean, half-range) in metres and downward pitch range in degrees, per DESIGN.md.
 DATABASE_HEIGHT = (1.5, 0.1)
 QUERY_HEIGHT = (1.2, 0.05)
 PITCH_RANGE_DEG = (15.0, 30.0)
+#: Paths and cover points prefer cells at least this far (metres) inside the navigable area.
+CLEARANCE_CAP = 0.5
+#: Extra travel cost per metre on the navigable boundary (linearly less up to ``CLEARANCE_CAP``).
+WALL_COST = 2.0
 
 
 @dataclass(frozen=True)
@@ -45,15 +51,28 @@ def largest_component(navigable: NDArray[np.bool_]) -> NDArray[np.bool_]:
     return labels == (int(np.argmax(sizes)) + 1)
 
 
+def clearance_map(component: NDArray[np.bool_], spec: GridSpec) -> NDArray[np.float64]:
+    """Distance (metres) from every component cell to the nearest cell outside it (0 outside)."""
+    padded = np.pad(component, 1, constant_values=False)
+    return ndimage.distance_transform_edt(padded)[1:-1, 1:-1] * spec.resolution
+
+
+def _wall_penalty(clearance: NDArray[np.float64]) -> NDArray[np.float64]:
+    """0 at ``CLEARANCE_CAP`` or more from the navigable boundary, rising to 1 at the boundary."""
+    return 1.0 - np.minimum(clearance, CLEARANCE_CAP) / CLEARANCE_CAP
+
+
 def cover_cells(component: NDArray[np.bool_], spec: GridSpec, cover_spacing: float) -> NDArray[np.int64]:
-    """One (row, col) per ``cover_spacing`` block holding component cells: the cell nearest the
-    block's centre. Shape (M, 2), ordered row-major by block."""
+    """One (row, col) per ``cover_spacing`` block holding component cells, shape (M, 2), ordered
+    row-major by block: the cell minimising distance to the block's centre + a penalty for
+    standing near the navigable boundary (so cameras keep away from walls and furniture)."""
     block = max(1, int(round(cover_spacing / spec.resolution)))
     rows, cols = np.nonzero(component)
     block_id = np.stack([rows // block, cols // block], axis=1)
     centre = (block_id + 0.5) * block - 0.5
-    dist = np.hypot(rows - centre[:, 0], cols - centre[:, 1])
-    order = np.lexsort((dist, block_id[:, 1], block_id[:, 0]))
+    score = np.hypot(rows - centre[:, 0], cols - centre[:, 1]) * spec.resolution
+    score += cover_spacing * _wall_penalty(clearance_map(component, spec)[rows, cols])
+    order = np.lexsort((score, block_id[:, 1], block_id[:, 0]))
     keys = block_id[order]
     first = np.ones(len(order), bool)
     first[1:] = np.any(keys[1:] != keys[:-1], axis=1)
@@ -61,19 +80,27 @@ def cover_cells(component: NDArray[np.bool_], spec: GridSpec, cover_spacing: flo
     return np.stack([rows[chosen], cols[chosen]], axis=1).astype(np.int64)
 
 
-def _line_of_sight(component: NDArray[np.bool_], a: NDArray[np.int64], b: NDArray[np.int64]) -> bool:
+def _line_clear(
+    clearance: NDArray[np.float64], a: NDArray[np.int64], b: NDArray[np.int64], need: float
+) -> bool:
     rr, cc = draw_line(int(a[0]), int(a[1]), int(b[0]), int(b[1]))
-    return bool(component[rr, cc].all())
+    return bool(np.all(clearance[rr, cc] >= need))
 
 
-def _shortcut(component: NDArray[np.bool_], cells: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Vertices of a grid path after greedy line-of-sight shortening (first and last kept)."""
+def _shortcut(clearance: NDArray[np.float64], cells: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Vertices of a grid path after greedy line-of-sight shortening (first and last kept); a
+    shortcut may not pass closer to the boundary than the path it replaces (capped)."""
+    path_clear = np.minimum(clearance[cells[:, 0], cells[:, 1]], CLEARANCE_CAP)
     keep = [0]
     i = 0
     while i < len(cells) - 1:
         j = i + 1
-        while j + 1 < len(cells) and _line_of_sight(component, cells[i], cells[j + 1]):
-            j += 1
+        need = min(path_clear[i], path_clear[j])
+        while j + 1 < len(cells):
+            need_next = min(need, path_clear[j + 1])
+            if not _line_clear(clearance, cells[i], cells[j + 1], need_next - 1e-9):
+                break
+            j, need = j + 1, need_next
         keep.append(j)
         i = j
     return cells[keep]
@@ -109,7 +136,9 @@ def _tour(
     p_look: float,
 ) -> list[_Waypoint]:
     """Short geodesic tour over the cover cells (nearest neighbour + 2-opt), as polyline waypoints."""
-    mcp = MCP_Geometric(np.where(component, 1.0, np.inf))
+    clearance = clearance_map(component, spec)
+    # Travel costs up to 1 + WALL_COST near the navigable boundary: paths keep to open space.
+    mcp = MCP_Geometric(np.where(component, 1.0 + WALL_COST * _wall_penalty(clearance), np.inf))
     D = np.stack([mcp.find_costs([tuple(c)])[0][covers[:, 0], covers[:, 1]] for c in covers])
     order = [int(rng.integers(len(covers)))]
     left = np.ones(len(covers), bool)
@@ -125,7 +154,7 @@ def _tour(
         goal = tuple(covers[order[k]])
         mcp.find_costs([tuple(covers[order[k - 1]])], [goal])
         path = np.asarray(mcp.traceback(goal), np.int64)
-        for cell in _shortcut(component, path)[1:-1]:
+        for cell in _shortcut(clearance, path)[1:-1]:
             waypoints.append(_Waypoint(spec.cell_to_world(cell)))
         waypoints.append(_Waypoint(spec.cell_to_world(covers[order[k]]), bool(looks[k])))
     return waypoints
@@ -183,8 +212,8 @@ def coverage_trajectory(
     spacing: float = 0.3,
     height: tuple[float, float] = DATABASE_HEIGHT,
     pitch_deg: tuple[float, float] = PITCH_RANGE_DEG,
-    cover_spacing: float = 1.5,
-    max_turn_deg: float = 30.0,
+    cover_spacing: float = 2.0,
+    max_turn_deg: float = 45.0,
     look_around_prob: float = 0.2,
     look_around_step_deg: float = 60.0,
     yaw_jitter_deg: float = 10.0,

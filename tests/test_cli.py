@@ -1,0 +1,139 @@
+"""The ``vgpnav`` command line: plug-in registry, one-line errors, nothing half-written."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+from vgpnav_env import cli
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    try:
+        code = cli.main(argv)
+    except SystemExit as e:
+        code = int(e.code)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("vgpnav: error: ")
+    return lines[0]
+
+
+def test_help_lists_commands_without_importing_them(capsys: pytest.CaptureFixture[str]) -> None:
+    sys.modules.pop("vgpnav_env.build", None)
+    code, out, _ = _run(["--help"], capsys)
+    assert code == 0
+    assert "build" in out
+    assert "vgpnav_env.build" not in sys.modules  # commands are imported only when invoked
+
+
+def test_registered_command_group(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    module = types.ModuleType("vgpnav_fake_protocol")
+
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--episodes", type=int, default=3)
+
+    def run(args: argparse.Namespace) -> int:
+        sys.stdout.write(f"ran {args._command} with {args.episodes}\n")
+        return 0 if args.episodes > 0 else 1
+
+    module.add_arguments, module.run = add_arguments, run
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    monkeypatch.setitem(cli.COMMANDS, "eval fake", (module.__name__, "a fake protocol"))
+    assert _run(["eval", "fake", "--episodes", "5"], capsys)[:2] == (0, "ran eval fake with 5\n")
+    assert _run(["-v", "eval", "fake", "--episodes", "0"], capsys)[0] == 1
+    code, out, _ = _run(["eval", "--help"], capsys)
+    assert code == 0 and "fake" in out and "a fake protocol" in out
+    code, _, err = _run(["eval", "nope"], capsys)
+    assert code == 2 and "invalid choice: 'nope'" in _one_error_line(err)
+
+
+def test_value_errors_from_commands_are_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    module = types.ModuleType("vgpnav_fake_failing")
+    module.add_arguments = lambda parser: None
+
+    def run(args: argparse.Namespace) -> int:
+        raise ValueError("bad thing\n  spread over lines")
+
+    module.run = run
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    monkeypatch.setitem(cli.COMMANDS, "train fake", (module.__name__, "fails"))
+    code, _, err = _run(["train", "fake"], capsys)
+    assert code == 2
+    assert _one_error_line(err) == "vgpnav: error: bad thing spread over lines"
+
+
+@pytest.mark.parametrize(
+    "text", ["32x", "0x240", "4000x3000", "320x0", "abc", "320*240", "-3x2", "320x240x3"]
+)
+def test_bad_size(text: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(["build", "home", "--out", str(tmp_path / "out"), f"--size={text}"], capsys)
+    line = _one_error_line(err)
+    assert code == 2
+    assert "--size" in line and repr(text) in line
+    assert "1 <= W <= 1920, 1 <= H <= 1080" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_size_arg_parses() -> None:
+    assert cli.size_arg("320x240") == (320, 240)
+    assert cli.size_arg("1920X1080") == (1920, 1080)
+
+
+@pytest.mark.parametrize("text", ["-1", "1.5", "abc", ""])
+def test_bad_seed(text: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(["build", "home", "--out", str(tmp_path / "out"), f"--seed={text}"], capsys)
+    line = _one_error_line(err)
+    assert code == 2 and "seed must be a non-negative integer" in line and repr(text) in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_texture(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(["build", "home", "--out", str(tmp_path / "out"), "--texture", "shiny"], capsys)
+    line = _one_error_line(err)
+    assert code == 2 and "'shiny'" in line and "realistic" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_scene(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(["build", "nosuchscene", "--out", str(tmp_path / "out")], capsys)
+    line = _one_error_line(err)
+    assert code == 2 and "'nosuchscene'" in line and "home" in line and "hospital" in line
+    assert list(tmp_path.iterdir()) == []  # nothing written, not even a temp directory
+
+
+def test_malformed_spec_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = tmp_path / "broken.yaml"
+    spec.write_text("name: broken\nrooms:\n  - name: a\n    rect: [0, 0, oops]\n")
+    out = tmp_path / "out"
+    code, _, err = _run(["build", str(spec), "--out", str(out), "--quiet"], capsys)
+    line = _one_error_line(err)
+    assert code == 2 and "broken" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.yaml"]
+
+
+def test_console_script_error_is_one_line(tmp_path: Path) -> None:
+    """The installed entry point: real stderr, real exit code."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "vgpnav_env.cli", "build", "home", "--size", "0x240"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    _one_error_line(proc.stderr)
+    assert proc.stdout == ""
