@@ -22,6 +22,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
 from vgpnav_env.scenes.scene import Material
 
 TEXTURE_LEVELS: tuple[str, ...] = ("rich", "realistic", "sparse")
@@ -162,11 +163,10 @@ def _noise(
 ) -> NDArray[np.float64]:
     """Periodic (tileable) Gaussian-filtered noise, zero mean, unit std; sigma in pixels (u, v)."""
     sv = sigma if sigma_v is None else sigma_v
-    white = rng.standard_normal((n, n))
-    f = np.fft.fftfreq(n)
-    fy, fx = np.meshgrid(f, f, indexing="ij")
-    kernel = np.exp(-2 * np.pi**2 * ((fx * sigma) ** 2 + (fy * sv) ** 2))
-    out = np.real(np.fft.ifft2(np.fft.fft2(white) * kernel))
+    white = rng.standard_normal((n, n), dtype=np.float32)
+    fy, fx = np.meshgrid(np.fft.fftfreq(n), np.fft.rfftfreq(n), indexing="ij")
+    kernel = np.exp(-2 * np.pi**2 * ((fx * sigma) ** 2 + (fy * sv) ** 2)).astype(np.float32)
+    out = np.fft.irfft2(np.fft.rfft2(white) * kernel, s=(n, n)).astype(np.float64)
     return (out - out.mean()) / (out.std() + 1e-12)
 
 
@@ -206,10 +206,8 @@ def _parquet(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -
             x0 = k * pw - offset
             tone = 1.0 + contrast * rng.normal(0, 0.07)
             sx, sy = rng.integers(0, n, 2)
-            patch = np.roll(np.roll(wood, sx, axis=1), sy, axis=0)[:ph, :pw] * tone
-            for xs in range(pw):
-                x = (x0 + xs) % n
-                out[r * ph : (r + 1) * ph, x] = patch[:, xs]
+            patch = wood[np.ix_((sy + np.arange(ph)) % n, (sx + np.arange(pw)) % n)] * tone
+            out[r * ph : (r + 1) * ph, (x0 + np.arange(pw)) % n] = patch
     seam = np.ones((n, n))
     seam[::ph, :] = 1 - 0.45 * min(contrast, 1.5)
     for r in range(rows):

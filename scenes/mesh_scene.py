@@ -7,7 +7,8 @@ Directory layout::
                             "structure_categories": {"<part>": "floor"|"ceiling"|"wall"},  # optional
                             "objects": [{"name", "category", "mesh": "objects/x.glb",
                                          "bbox": {"centre": [x,y,z], "size": [sx,sy,sz],
-                                                  "euler": [rx,ry,rz]}}]}
+                                                  "euler": [rx,ry,rz]},
+                                         "collision": true}]}   # optional, false: visual only
       layout_<name>.json   further layouts: same keys; missing top-level keys come from layout.json
       structure.glb        walls + floor (+ ceiling), GLB/GLTF/OBJ/PLY
       objects/...          one mesh file per object
@@ -34,6 +35,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+
 from vgpnav_env.scenes.meshes import load_mesh_file
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 from vgpnav_env.scenes.spec import SceneError
@@ -265,7 +267,8 @@ def load_mesh_scene(
             mw = _to_world(m.copy().apply_transform(T), up, scale)
             name = str(entry["name"]) if k == 0 else f"{entry['name']}/{pname}"
             cat = str(entry.get("category", "object"))
-            meshes.append(SceneMesh(name, cat, mw, _material(mw, f"{tag}/{name}"), _hull(mw)))
+            collision = _hull(mw) if entry.get("collision", True) else []
+            meshes.append(SceneMesh(name, cat, mw, _material(mw, f"{tag}/{name}"), collision))
     return Scene(name=tag, layout=layout, texture="native", meshes=meshes)
 
 
@@ -313,7 +316,15 @@ def export_mesh_scene(
             (out / rel).parent.mkdir(parents=True, exist_ok=True)
             local.export(out / rel)
             bbox = {"centre": centre.tolist(), "size": (hi - lo).tolist(), "euler": [0.0, 0.0, 0.0]}
-            objects.append({"name": m.name, "category": m.category, "mesh": rel.as_posix(), "bbox": bbox})
+            objects.append(
+                {
+                    "name": m.name,
+                    "category": m.category,
+                    "mesh": rel.as_posix(),
+                    "bbox": bbox,
+                    "collision": bool(m.collision),
+                }
+            )
         data: dict[str, Any] = {"objects": objects}
         if i == 0:
             data = {

@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from vgpnav_env.scenes.freespace import blocks, connectivity_report, footprint
 from vgpnav_env.scenes.primitives import PRIMITIVES
 from vgpnav_env.scenes.spec import DoorSpec, LayoutEdit, ObjectSpec, RoomSpec, SceneError, SceneSpec, WallSpec

@@ -94,7 +94,11 @@ def _check(value: str, allowed: tuple[str, ...], what: str) -> None:
 def load_scene(
     source: str, layout: str = "base", texture: str = "realistic", lighting: str = "default"
 ) -> Scene:
-    """Build (or fetch from the in-process cache) one layout of a scene source."""
+    """Build (or fetch from the in-process cache) one layout of a scene source.
+
+    Mesh-scene directories keep their files' own appearance: ``texture`` is checked but the Scene's
+    texture is ``native``.
+    """
     _check(texture, TEXTURE_LEVELS, "texture level")
     _check(lighting, LIGHTING_LEVELS, "lighting")
     layouts = list_layouts(source)
@@ -104,6 +108,6 @@ def load_scene(
         from vgpnav_env.scenes.mesh_scene import load_mesh_scene
 
         scene = load_mesh_scene(source, layout=layout)
-        scene.texture, scene.lighting = texture, lighting
+        scene.lighting = lighting
         return scene
     return build_scene(load_scene_spec(source), layout, texture, lighting)
