@@ -12,10 +12,10 @@ from collections.abc import Iterable
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from vgpnav_env.scenes.primitives import PRIMITIVES, primitive_parts
-from vgpnav_env.scenes.spec import ObjectSpec, SceneSpec, WallSpec
 
 from vgpnav_env.grid import GridSpec
+from vgpnav_env.scenes.primitives import PRIMITIVES, primitive_parts
+from vgpnav_env.scenes.spec import ObjectSpec, SceneSpec, WallSpec
 
 # Kinds that never block the robot (they lie flat on the floor or hang on walls).
 PASSABLE_KINDS: frozenset[str] = frozenset({"rug", "picture", "poster", "panel"})

@@ -21,12 +21,12 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from PIL import Image
+
+from vgpnav_env.geometry import make_pose
 from vgpnav_env.scenes.materials import make_material
 from vgpnav_env.scenes.primitives import FITTED_ROLES, Part, primitive_parts, role_materials
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 from vgpnav_env.scenes.spec import ObjectSpec, RoomSpec, SceneError, SceneSpec, WallSpec
-
-from vgpnav_env.geometry import make_pose
 
 SLAB_M = 0.02
 
