@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from vgpnav_env.scenes import load_scene
 
 import vgpnav_env.build as build
 from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch
 from vgpnav_env.groundtruth import ground_truth_map
 from vgpnav_env.render import MujocoRenderer
 from vgpnav_env.runs import load_build, load_run_depth, run_fingerprint
+from vgpnav_env.scenes import load_scene
 
 pytestmark = pytest.mark.slow
 

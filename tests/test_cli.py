@@ -137,3 +137,13 @@ def test_console_script_error_is_one_line(tmp_path: Path) -> None:
     assert proc.returncode == 2
     _one_error_line(proc.stderr)
     assert proc.stdout == ""
+
+
+def test_build_refuses_foreign_out_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    code, _, err = _run(["build", "home", "--out", str(out), "--quiet"], capsys)
+    line = _one_error_line(err)
+    assert code == 1 and "refusing to replace" in line and str(out) in line
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]

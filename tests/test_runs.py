@@ -192,3 +192,19 @@ def test_not_a_directory(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(RunFormatError, match="missing meta.json"):
         load_run(tmp_path / "empty")
+
+
+def test_save_never_replaces_foreign_directories(tmp_path: Path) -> None:
+    run, _ = make_run()
+    foreign = tmp_path / "photos"
+    foreign.mkdir()
+    (foreign / "holiday.jpg").write_bytes(b"precious")
+    with pytest.raises(FileExistsError, match="refusing to replace .*photos.*not a vgpnav run"):
+        save_run(foreign, run)
+    assert [p.name for p in foreign.iterdir()] == ["holiday.jpg"]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(FileExistsError, match="refusing"):
+        save_run(tmp_path / "file", run)
+    (tmp_path / "empty").mkdir()
+    assert len(load_run(save_run(tmp_path / "empty", run))) == 4  # empty directories are fine
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "file", "photos"]

@@ -38,6 +38,7 @@ from vgpnav_env.runs import (
     RunFormatError,
     atomic_directory,
     build_dir_name,
+    check_replaceable,
     default_cache_dir,
     load_build,
     write_json,
@@ -194,6 +195,7 @@ def build_runs(
         raise ValueError(f"fovy_deg must lie in [1, 170] degrees, got {fovy_deg}")
     out = Path(out_dir) if out_dir is not None else default_build_dir(source, size, seed, texture)
     params = build_parameters(source, size, seed, texture, fovy_deg, query_lighting)
+    check_replaceable(out, "build")
     summary = _reusable(out, params)
     if summary is not None:
         logger.info("reusing build %s", out)
@@ -259,7 +261,7 @@ def build_runs(
         summary["build_seconds"] = round(time.perf_counter() - t0, 2)
         write_json(tmp / "summary.json", summary)
 
-    atomic_directory(out, write)
+    atomic_directory(out, write, "build")
     logger.info(
         "built %s: %d database + %d query frames in %.1f s -> %s",
         name,

@@ -124,21 +124,50 @@ def _write_npy(path: Path, array: NDArray[Any], compressed_npz: bool = False) ->
         os.fsync(f.fileno())
 
 
-def atomic_directory(path: Path | str, write: Callable[[Path], None]) -> Path:
-    """Create directory ``path`` atomically: ``write(tmp)`` fills a temporary sibling directory,
-    which then replaces ``path``. An existing ``path`` is only removed after ``write`` succeeded;
-    on any exception the temporary directory is deleted and ``path`` is left untouched."""
+#: Directory kinds written atomically: marker file and its "format" value.
+_MARKERS = {"run": ("meta.json", RUN_FORMAT), "build": ("summary.json", BUILD_FORMAT)}
+
+
+def check_replaceable(path: Path | str, kind: str) -> None:
+    """Raise FileExistsError unless ``path`` is absent, an empty directory, or a vgpnav ``kind``
+    ("run" or "build") directory, so that saving never deletes unrelated data."""
     path = Path(path)
+    marker, fmt = _MARKERS[kind]
+    if not path.exists() or (path.is_dir() and not any(path.iterdir())):
+        return
+    try:
+        ok = path.is_dir() and json.loads((path / marker).read_text()).get("format") == fmt
+    except (OSError, ValueError, AttributeError):
+        ok = False
+    if not ok:
+        raise FileExistsError(
+            f"refusing to replace {path}: it exists and is not a vgpnav {kind} directory ({marker} with "
+            f"format {fmt!r}); choose another directory or remove it"
+        )
+
+
+def atomic_directory(path: Path | str, write: Callable[[Path], None], kind: str) -> Path:
+    """Create directory ``path`` atomically: ``write(tmp)`` fills a temporary sibling directory,
+    which then replaces ``path``. An existing ``path`` must be replaceable (see
+    :func:`check_replaceable`) and is only removed after ``write`` succeeded; on any exception the
+    temporary directory is deleted and ``path`` is left as it was."""
+    path = Path(path)
+    check_replaceable(path, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     tag = uuid.uuid4().hex[:8]
     tmp = path.parent / f".{path.name}.tmp-{tag}"
     tmp.mkdir()
     try:
         write(tmp)
+        check_replaceable(path, kind)
         if path.exists():
             old = path.parent / f".{path.name}.old-{tag}"
             os.replace(path, old)
-            os.replace(tmp, path)
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                os.replace(old, path)
+                raise
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
@@ -194,7 +223,7 @@ def write_run(directory: Path, run: Run, depth: NDArray[np.floating] | None = No
 def save_run(path: Path | str, run: Run, depth: NDArray[np.floating] | None = None) -> Path:
     """Save ``run`` to directory ``path`` atomically (temp directory + rename). ``depth`` (N, H, W)
     metric z-depth goes to ``groundtruth/depth.npz`` (float16). Returns the path."""
-    path = atomic_directory(path, lambda tmp: write_run(tmp, run, depth))
+    path = atomic_directory(path, lambda tmp: write_run(tmp, run, depth), "run")
     logger.info("saved %s run of %d frames to %s", run.metadata.get("kind"), len(run), path)
     return path
 
