@@ -10,6 +10,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
 from vgpnav_env.agents.astar import AStarAgent
 
 

@@ -23,11 +23,11 @@ from typing import Any, Protocol
 import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
+
 from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
-from vgpnav_env.eval.report import markdown_table, write_report
-
 from vgpnav_env.cli import seed_arg, size_arg
+from vgpnav_env.eval.report import markdown_table, write_report
 
 logger = logging.getLogger(__name__)
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
-from vgpnav_env.agents.astar import FORWARD, STOP, TURN_LEFT, TURN_RIGHT, AStarAgent, inflate
 
+from vgpnav_env.agents.astar import FORWARD, STOP, TURN_LEFT, TURN_RIGHT, AStarAgent, inflate
 from vgpnav_env.grid import GridSpec
 
 RES = 0.05
@@ -129,6 +129,7 @@ def test_agent_bad_inputs():
 
 def test_oracle_reaches_95_percent_of_20_home_episodes():
     import gymnasium as gym
+
     from vgpnav_env.agents.oracle import OracleAgent
     from vgpnav_env.eval.navigation import run_episode, summarize
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
-from vgpnav_env.scenes.model import build_mjspec
 
 from vgpnav_env.envs.robot import PlanarRobot, add_robot, arc_path, straight_path, turn_path
 from vgpnav_env.geometry import camera_yaw_pitch
+from vgpnav_env.scenes.model import build_mjspec
 
 
 @pytest.fixture(scope="module")

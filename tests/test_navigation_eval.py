@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from vgpnav_env.eval.navigation import EpisodeRecord, evaluate_navigation, make_agent, summarize
 
 
