@@ -1,8 +1,10 @@
 """Lighting presets named by ``Scene.lighting``; the MuJoCo model builder and renderers read them.
 
-Meaning (see ``scenes/README.md``): a uniform ``ambient`` term, one ceiling point light per room
-(at the room's floor polygon centroid, ``ceiling_offset`` below the ceiling) with ``room_diffuse``
-colour and quadratic-free attenuation, and a camera ``headlight_diffuse``. Shadows stay off.
+Meaning (agreed with ``scenes/model.py``, see ``scenes/README.md``): a uniform ``ambient`` term, a
+camera ``headlight_diffuse``, and ``room_diffuse``, the diffuse light of the room lights (the
+MuJoCo model splits it over two tilted directional lights from above). No specular light, no
+shadows. ``dim`` is a darker query condition, ``warm`` a yellowish (tungsten-like) one, ``bright``
+a brighter one; ``default`` is what database runs use.
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ class LightingPreset:
     ambient: RGB
     room_diffuse: RGB
     headlight_diffuse: RGB
-    ceiling_offset: float = 0.3
 
 
 LIGHTING_PRESETS: dict[str, LightingPreset] = {
