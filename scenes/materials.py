@@ -263,7 +263,7 @@ def _carpet(rng: np.random.Generator, n: int, base: NDArray, contrast: float) ->
 
 def _fabric(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> NDArray:
     u, v = _grid(n)
-    weave = np.sin(2 * np.pi * 64 * u) * np.sin(2 * np.pi * 64 * v)
+    weave = np.sin(2 * np.pi * 32 * u) * np.sin(2 * np.pi * 32 * v)
     shade = 1.0 + contrast * (0.05 * weave + 0.05 * _noise(rng, n, 1.0) + 0.04 * _noise(rng, n, n / 6))
     return _tone(base, shade)
 

@@ -4,7 +4,7 @@ Directory layout::
 
     scene_dir/
       layout.json          {"structure": "structure.glb", "up": "z"|"y", "scale": 1.0,
-                            "structure_categories": {"<part>": "floor"|"ceiling"|"wall"},  # optional
+                            "structure_categories": {"<part>": "floor"|"ceiling"|"wall"|"trim"},
                             "objects": [{"name", "category", "mesh": "objects/x.glb",
                                          "bbox": {"centre": [x,y,z], "size": [sx,sy,sz],
                                                   "euler": [rx,ry,rz]},
@@ -36,7 +36,7 @@ import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from vgpnav_env.scenes.meshes import load_mesh_file
+from vgpnav_env.scenes.meshes import STRUCTURE_CATEGORIES, load_mesh_file
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 from vgpnav_env.scenes.spec import SceneError
 
@@ -196,7 +196,7 @@ def _structure_meshes(
     out = []
     for name, m in pieces:
         cat = categories.get(name) or _classify(m, zmin, zmax)
-        if cat in ("floor", "ceiling"):
+        if cat in ("floor", "ceiling", "trim"):
             collision: list[trimesh.Trimesh] = []
         else:
             comps = m.split(only_watertight=False) or [m]
@@ -287,7 +287,7 @@ def export_mesh_scene(
 ) -> Path:
     """Write scenes (layouts of one scene, the first is ``base``) as a mesh-scene directory.
 
-    The structure (floor, ceiling, wall meshes) comes from the first scene; each scene's objects go
+    The structure (floor, ceiling, wall and trim meshes) comes from the first scene; each scene's objects go
     to ``objects/<layout>/<mesh>.glb`` with an axis-aligned bbox (euler 0) in the file frame. GLB
     files keep UVs and textures. Returns the directory.
     """
@@ -299,14 +299,14 @@ def export_mesh_scene(
     structure = trimesh.Scene()
     categories = {}
     for m in scenes[0].meshes:
-        if m.category in ("floor", "ceiling", "wall"):
+        if m.category in STRUCTURE_CATEGORIES:
             structure.add_geometry(_from_world(m.mesh, up, scale), node_name=m.name, geom_name=m.name)
             categories[m.name] = m.category
     structure.export(out / "structure.glb")
     for i, sc in enumerate(scenes):
         objects = []
         for m in sc.meshes:
-            if m.category in ("floor", "ceiling", "wall"):
+            if m.category in STRUCTURE_CATEGORIES:
                 continue
             local = _from_world(m.mesh, up, scale)
             lo, hi = local.bounds

@@ -1,10 +1,11 @@
 """Spec + layout + texture level -> ``Scene``: textured trimesh surfaces in W with convex collision.
 
-Mesh names: ``floor/<room>``, ``ceiling/<room>``, ``wall/<wall>``, and per object ``<object>`` for
-its main part plus ``<object>/<role>`` for its other material roles (``object_of`` maps a mesh
-name back to its object). Categories: ``floor``, ``ceiling``, ``wall`` and the objects' categories.
-Floors and ceilings are 2 cm slabs (floor top at z = 0, ceiling bottom at the wall height) without
-collision; walls and objects carry convex collision parts (boxes, cylinders, convex hulls).
+Mesh names: ``floor/<room>``, ``ceiling/<room>``, ``wall/<wall>``, ``trim/<wall>`` (skirting boards
+and door architraves), and per object ``<object>`` for its main part plus ``<object>/<role>`` for its
+other material roles (``object_of`` maps a mesh name back to its object). Categories: ``floor``,
+``ceiling``, ``wall``, ``trim`` and the objects' categories. Floors and ceilings are 2 cm slabs
+(floor top at z = 0, ceiling bottom at the wall height); they and trims have no collision; walls and
+objects carry convex collision parts (boxes, cylinders, convex hulls).
 
 UVs are isometric per face: each face is projected onto an orthonormal basis of its own plane
 (u horizontal, v up on vertical faces) in the object's local frame, divided by ``tile_m``, so a
@@ -29,12 +30,14 @@ from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 from vgpnav_env.scenes.spec import ObjectSpec, RoomSpec, SceneError, SceneSpec, WallSpec
 
 SLAB_M = 0.02
+STRUCTURE_CATEGORIES = ("floor", "ceiling", "wall", "trim")
+TRIM_MATERIAL = "wood:white"
 
 
 def object_of(mesh_name: str) -> str:
     """The object (or structure element) a mesh belongs to: ``sofa/cushion`` -> ``sofa``."""
     head, _, rest = mesh_name.partition("/")
-    return mesh_name if head in ("floor", "ceiling", "wall") else head
+    return mesh_name if head in STRUCTURE_CATEGORIES else head
 
 
 def planar_uv(mesh: trimesh.Trimesh, tile_m: float, fit: bool = False) -> tuple[NDArray, NDArray, NDArray]:
@@ -246,23 +249,57 @@ def _wall_pieces(w: WallSpec) -> list[tuple[float, float, float, float]]:
     return pieces
 
 
+def _wall_pose(w: WallSpec) -> NDArray:
+    """T_w,wall: the wall's local frame (x along the wall from its start, y across, z up) in W."""
+    yaw = math.atan2(w.end[1] - w.start[1], w.end[0] - w.start[0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    return make_pose(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), (w.start[0], w.start[1], 0.0))
+
+
+def _local_box(a0: float, a1: float, y: float, depth: float, z0: float, z1: float) -> trimesh.Trimesh:
+    T = np.eye(4)
+    T[:3, 3] = ((a0 + a1) / 2, y, (z0 + z1) / 2)
+    return trimesh.creation.box(extents=(a1 - a0, depth, z1 - z0), transform=T)
+
+
 def _wall_mesh(w: WallSpec, material: Material) -> SceneMesh:
-    dx, dy = w.end[0] - w.start[0], w.end[1] - w.start[1]
-    yaw = math.atan2(dy, dx)
-    T = make_pose(
-        np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1.0]]),
-        (w.start[0], w.start[1], 0.0),
-    )
-    boxes = []
-    for a0, a1, z0, z1 in _wall_pieces(w):
-        Tp = np.eye(4)
-        Tp[:3, 3] = ((a0 + a1) / 2, 0.0, (z0 + z1) / 2)
-        boxes.append(trimesh.creation.box(extents=(a1 - a0, w.thickness, z1 - z0), transform=Tp))
+    T = _wall_pose(w)
+    boxes = [_local_box(a0, a1, 0.0, w.thickness, z0, z1) for a0, a1, z0, z1 in _wall_pieces(w)]
     surf = _concat([textured(b, material, T) for b in boxes])
     collision = [b.copy().apply_transform(T) for b in boxes]
     return SceneMesh(
         name=f"wall/{w.name}", category="wall", mesh=surf, material=material, collision=collision
     )
+
+
+SKIRTING_M = (0.08, 0.012)  # height, depth
+ARCHITRAVE_M = (0.07, 0.015)  # width, depth
+
+
+def _trim_mesh(w: WallSpec, material: Material) -> SceneMesh:
+    """Skirting boards along both faces and architraves around door gaps (visual only)."""
+    boxes = []
+    for side in (-1.0, 1.0):
+        sk_h, sk_d = SKIRTING_M
+        for a0, a1, z0, _ in _wall_pieces(w):
+            if z0 == 0.0:
+                boxes.append(_local_box(a0, a1, side * (w.thickness + sk_d) / 2, sk_d, 0.0, sk_h))
+        ar_w, ar_d = ARCHITRAVE_M
+        y = side * (w.thickness + ar_d) / 2
+        for d in w.doors:
+            lo, hi = d.at - d.width / 2, d.at + d.width / 2
+            if lo - ar_w >= 0.0:
+                boxes.append(_local_box(lo - ar_w, lo, y, ar_d, 0.0, d.height + ar_w))
+            if hi + ar_w <= w.length:
+                boxes.append(_local_box(hi, hi + ar_w, y, ar_d, 0.0, d.height + ar_w))
+            if d.height + ar_w <= w.height:
+                boxes.append(
+                    _local_box(
+                        max(lo - ar_w, 0.0), min(hi + ar_w, w.length), y, ar_d, d.height, d.height + ar_w
+                    )
+                )
+    surf = _concat([textured(b, material, _wall_pose(w)) for b in boxes])
+    return SceneMesh(name=f"trim/{w.name}", category="trim", mesh=surf, material=material)
 
 
 def build_scene(
@@ -279,6 +316,7 @@ def build_scene(
         meshes.append(SceneMesh(f"ceiling/{room.name}", "ceiling", _slab(room, ceiling_z + SLAB_M, cm), cm))
     for w in spec.walls:
         meshes.append(_wall_mesh(w, make_material(w.material, texture, spec.seed)))
+        meshes.append(_trim_mesh(w, make_material(TRIM_MATERIAL, texture, spec.seed)))
     for o in objects:
         if o.kind == "mesh":
             meshes.extend(_mesh_object(o, spec, texture))

@@ -187,7 +187,7 @@ def test_mesh_names_categories_and_collision(home) -> None:
     assert {"floor", "wall", "ceiling", "sofa", "bed", "table", "chair", "shelf"} <= cats
     for m in home.meshes:
         assert isinstance(m.mesh.visual, trimesh.visual.TextureVisuals) and m.material.image is not None
-        if m.category in ("floor", "ceiling", "picture", "poster", "rug", "panel"):
+        if m.category in ("floor", "ceiling", "trim", "picture", "poster", "rug", "panel"):
             assert m.collision == []
         for c in m.collision:
             assert c.is_convex and c.volume > 0
