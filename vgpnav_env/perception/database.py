@@ -1,0 +1,321 @@
+"""The database a robot localizes against: posed RGB images, their VLAD index and a prior map.
+
+``Database.open(run_dir)`` loads a database run (:mod:`vgpnav_env.runs`; a build directory is
+accepted too and its ``database/`` run is used), and computes once, caching under
+``<run_dir>/index/`` keyed by :func:`vgpnav_env.runs.run_fingerprint` (a changed run invalidates
+the cache; every file is written atomically):
+
+- the VLAD index (:class:`~vgpnav_env.perception.retrieval.VladIndex`) of every database image;
+- the PRIOR occupancy map (log-odds on a 0.05 m :class:`~vgpnav_env.grid.GridSpec` covering the
+  database cameras + margin), built from database images and poses ONLY (never ground-truth
+  depth or meshes): the classical backbone reconstructs every ``prior_stride``-th database frame
+  against its pose neighbours; the metric scale comes from the known database baselines
+  (metres / backbone units of the scale-linked pairs); the floor height is the median of the
+  per-frame ground peaks; points are classified by height and fused like the online map.
+
+Reference features of the classical backbone are kept in memory in :attr:`Database.feature_cache`
+(not on disk: ~0.8 MB per image).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import PinholeCamera, invert_pose, transform_points
+from vgpnav_env.grid import GridSpec
+from vgpnav_env.perception.backbones.classical import ClassicalBackbone, ClassicalConfig, FeatureCache
+from vgpnav_env.perception.occupancy import LogOddsMap
+from vgpnav_env.perception.retrieval import VladConfig, VladIndex
+from vgpnav_env.perception.scale_recovery import ground_peak
+from vgpnav_env.runs import Run, RunFormatError, load_run, run_fingerprint
+
+logger = logging.getLogger(__name__)
+
+#: Bumped whenever the prior-map computation changes, so stale caches are not loaded.
+PRIOR_VERSION = 1
+_PRIOR_FILE = "prior.npz"
+_PRIOR_META = "prior.json"
+
+
+@dataclass(frozen=True)
+class DatabaseConfig:
+    """How the database's index and prior map are computed (metres, degrees).
+
+    ``prior``: ``"database"`` builds the prior map from the database run (cached on disk),
+    ``"none"`` starts every map empty. The prior reconstructs every ``prior_stride``-th frame
+    against up to ``prior_neighbours`` database frames whose centres lie ``prior_baseline``
+    (min, max) metres away and whose optical axes differ by at most ``prior_max_angle_deg``;
+    pixels with depth confidence >= ``prior_min_confidence`` and metric depth <=
+    ``prior_max_depth`` enter the map, obstacles up to ``obstacle_max`` above the floor.
+    The fused log-odds are clamped to +-``prior_clamp`` so that live observations can
+    overturn the prior (the layout may have changed since the database was recorded).
+    """
+
+    vlad: VladConfig = field(default_factory=VladConfig)
+    vlad_seed: int = 0
+    prior: Literal["database", "none"] = "database"
+    map_resolution: float = 0.05
+    map_margin: float = 1.5
+    prior_stride: int = 4
+    prior_neighbours: int = 5
+    prior_baseline: tuple[float, float] = (0.15, 2.0)
+    prior_max_angle_deg: float = 40.0
+    prior_min_confidence: float = 0.3
+    prior_max_depth: float = 5.0
+    prior_point_stride: int = 2
+    obstacle_max: float = 1.2
+    prior_clamp: float = 2.0
+    feature_cache_size: int = 512
+
+    def __post_init__(self) -> None:
+        if self.prior not in ("database", "none"):
+            raise ValueError(f"prior must be 'database' or 'none', got {self.prior!r}")
+        if self.map_resolution <= 0 or self.map_margin < 0:
+            raise ValueError("map_resolution must be > 0 and map_margin >= 0 metres")
+        if (
+            min(self.prior_stride, self.prior_neighbours, self.prior_point_stride, self.feature_cache_size)
+            < 1
+        ):
+            raise ValueError(
+                "prior_stride, prior_neighbours, prior_point_stride, feature_cache_size must be >= 1"
+            )
+        if not 0 <= self.prior_baseline[0] < self.prior_baseline[1]:
+            raise ValueError(
+                f"prior_baseline must be (min, max) with 0 <= min < max, got {self.prior_baseline}"
+            )
+        if self.prior_clamp <= 0 or self.obstacle_max <= 0 or self.prior_max_depth <= 0:
+            raise ValueError("prior_clamp, obstacle_max and prior_max_depth must be positive")
+
+
+def _atomic_write(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict[str, Any]:
+    keys = [k for k in asdict(config) if k.startswith("prior") or k in ("map_resolution", "map_margin")]
+    return {
+        "version": PRIOR_VERSION,
+        "database": {k: asdict(config)[k] for k in keys} | {"obstacle_max": config.obstacle_max},
+        "backbone": asdict(backbone_config),
+    }
+
+
+def _jsonable_key(key: dict[str, Any]) -> Any:
+    return json.loads(json.dumps(key))
+
+
+@dataclass(eq=False)
+class Database:
+    """A database run with its retrieval index, a classical feature cache and the prior map.
+
+    ``prior`` is the prior log-odds map (None with ``config.prior="none"``); ``z_ground`` the
+    floor height estimated from the database (world frame, metres; nan without a prior);
+    ``timings`` how long the index and prior took (seconds; 0 when loaded from cache).
+    """
+
+    path: Path
+    run: Run
+    index: VladIndex
+    fingerprint: str
+    config: DatabaseConfig
+    map_spec: GridSpec
+    feature_cache: FeatureCache
+    prior: LogOddsMap | None = None
+    z_ground: float = float("nan")
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def poses(self) -> NDArray[np.float64]:
+        """(M, 4, 4) ``T_wi`` of the database cameras."""
+        return self.run.poses
+
+    @property
+    def images(self) -> NDArray[np.uint8]:
+        return self.run.images
+
+    @property
+    def camera(self) -> PinholeCamera:
+        return self.run.camera
+
+    def __len__(self) -> int:
+        return len(self.run)
+
+    def new_map(self) -> LogOddsMap:
+        """A fresh log-odds map over :attr:`map_spec`: a copy of the prior, or empty."""
+        return self.prior.copy() if self.prior is not None else LogOddsMap(self.map_spec)
+
+    @classmethod
+    def open(
+        cls,
+        run_dir: str | os.PathLike,
+        *,
+        config: DatabaseConfig | None = None,
+        backbone_config: ClassicalConfig | None = None,
+    ) -> Database:
+        """Load the database run at ``run_dir`` (or ``<build>/database``) with its cached index and prior.
+
+        ``backbone_config`` configures the classical backbone used for the prior (default
+        :class:`ClassicalConfig`). Raises :class:`~vgpnav_env.runs.RunFormatError` if the
+        directory is not a readable run.
+        """
+        config = config or DatabaseConfig()
+        backbone_config = backbone_config or ClassicalConfig()
+        path = Path(run_dir)
+        if (path / "summary.json").is_file() and (path / "database").is_dir():
+            path = path / "database"
+        run = load_run(path)
+        if run.metadata.get("kind") not in (None, "database"):
+            raise RunFormatError(f"{path}: is a {run.metadata.get('kind')!r} run, expected a database run")
+        fingerprint = run_fingerprint(path)
+        cache = path / "index"
+        cache.mkdir(exist_ok=True)
+        timings: dict[str, float] = {}
+
+        t0 = time.perf_counter()
+        index = VladIndex.load(cache, expected_fingerprint=fingerprint)
+        if index is None or index.config != config.vlad:
+            logger.info("fitting the VLAD index of %d database images (%s)", len(run), path)
+            index = VladIndex.fit(
+                list(run.images), config=config.vlad, seed=config.vlad_seed, fingerprint=fingerprint
+            )
+            index.save(cache)
+        timings["index"] = time.perf_counter() - t0
+
+        xy = run.positions[:, :2]
+        spec = GridSpec.covering(xy.min(axis=0), xy.max(axis=0), config.map_resolution, config.map_margin)
+        feature_cache = FeatureCache(config.feature_cache_size)
+        db = cls(path, run, index, fingerprint, config, spec, feature_cache, timings=timings)
+        if config.prior == "database":
+            t0 = time.perf_counter()
+            db._load_or_build_prior(cache, backbone_config)
+            timings["prior"] = time.perf_counter() - t0
+        return db
+
+    def _load_or_build_prior(self, cache: Path, backbone_config: ClassicalConfig) -> None:
+        key = _jsonable_key(_prior_key(self.config, backbone_config))
+        meta_file, arrays_file = cache / _PRIOR_META, cache / _PRIOR_FILE
+        if meta_file.is_file() and arrays_file.is_file():
+            try:
+                meta = json.loads(meta_file.read_text())
+                with np.load(arrays_file) as z:
+                    if (
+                        meta.get("fingerprint") == self.fingerprint
+                        and meta.get("key") == key
+                        and str(z["fingerprint"]) == self.fingerprint
+                        and tuple(z["logodds"].shape) == self.map_spec.shape
+                    ):
+                        self.prior = LogOddsMap.from_prior(self.map_spec, z["logodds"])
+                        self.z_ground = float(z["z_ground"])
+                        return
+            except (OSError, KeyError, ValueError) as e:
+                logger.warning("ignoring unreadable prior map cache in %s: %s", cache, e)
+        logger.info(
+            "building the prior map from %d database frames",
+            len(range(0, len(self), self.config.prior_stride)),
+        )
+        self.prior, self.z_ground, stats = build_prior(
+            self, ClassicalBackbone(backbone_config, self.feature_cache)
+        )
+        _atomic_write(
+            arrays_file,
+            lambda f: np.savez(
+                f, logodds=self.prior.logodds, z_ground=self.z_ground, fingerprint=np.array(self.fingerprint)
+            ),
+        )
+        meta = {"fingerprint": self.fingerprint, "key": key, "stats": stats}
+        _atomic_write(meta_file, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+
+
+def prior_neighbours(poses: NDArray[np.float64], j: int, config: DatabaseConfig) -> NDArray[np.int64]:
+    """Up to ``prior_neighbours`` database frames overlapping frame ``j``, widest baseline first.
+
+    Candidates lie ``prior_baseline`` metres away with optical axes within ``prior_max_angle_deg``;
+    they are picked greedily to spread the baselines (farthest from the already picked ones).
+    """
+    c = poses[:, :3, 3]
+    axis = poses[:, :3, 2]
+    d = np.linalg.norm(c - c[j], axis=1)
+    cos = np.clip(axis @ axis[j], -1.0, 1.0)
+    ok = (d >= config.prior_baseline[0]) & (d <= config.prior_baseline[1])
+    ok &= cos >= np.cos(np.deg2rad(config.prior_max_angle_deg))
+    cand = np.flatnonzero(ok)
+    if len(cand) == 0:
+        return cand.astype(np.int64)
+    # Score overlap: close in angle and moderate in distance; then greedy spread.
+    score = cos[cand] - 0.2 * d[cand]
+    cand = cand[np.argsort(-score)][: 4 * config.prior_neighbours]
+    picked = [int(cand[0])]
+    while len(picked) < min(config.prior_neighbours, len(cand)):
+        gap = np.min(np.linalg.norm(c[cand][:, None] - c[picked][None], axis=2), axis=1)
+        gap[np.isin(cand, picked)] = -np.inf
+        picked.append(int(cand[int(np.argmax(gap))]))
+    return np.array(picked, np.int64)
+
+
+def build_prior(db: Database, backbone: ClassicalBackbone) -> tuple[LogOddsMap, float, dict[str, Any]]:
+    """The prior log-odds map, the estimated floor height and build statistics (see module docstring)."""
+    cfg = db.config
+    camera = db.camera
+    frames: list[tuple[int, NDArray[np.float64]]] = []  # (frame, metric camera-frame points)
+    ground_z: list[float] = []
+    t0 = time.perf_counter()
+    for j in range(0, len(db), cfg.prior_stride):
+        refs = prior_neighbours(db.poses, j, cfg)
+        if len(refs) < 2:
+            continue
+        out = backbone(
+            db.images[j], [db.images[i] for i in refs], camera, reference_keys=[int(i) for i in refs]
+        )
+        ok = out.scale_valid & (out.confidence > 0)
+        if not ok.any():
+            continue
+        T_ji = invert_pose(db.poses[j]) @ db.poses[refs]  # reference i -> query j, metric
+        metric = np.linalg.norm(T_ji[ok, :3, 3], axis=1)
+        units = np.linalg.norm(out.T_qi[ok, :3, 3], axis=1)
+        good = units > 1e-9
+        if not good.any():
+            continue
+        scale = float(np.median(metric[good] / units[good]))
+        s = cfg.prior_point_stride
+        depth = out.query_depth[::s, ::s] * scale
+        conf = out.query_depth_confidence[::s, ::s]
+        mask = (conf >= cfg.prior_min_confidence) & (depth > 0) & (depth <= cfg.prior_max_depth)
+        if mask.sum() < 50:
+            continue
+        pts = (camera.rays()[::s, ::s] * depth[..., None])[mask]
+        g = ground_peak(pts, db.poses[j][:3, :3], conf[mask])
+        if g.found:
+            ground_z.append(float(db.poses[j][2, 3] + g.height_b))
+        frames.append((j, pts))
+    z_ground = float(np.median(ground_z)) if ground_z else 0.0
+    fused = LogOddsMap(db.map_spec)
+    for j, pts in frames:
+        T = db.poses[j]
+        fused.update(transform_points(T, pts), z_ground, cfg.obstacle_max, camera_xy=T[:2, 3])
+    prior = LogOddsMap.from_prior(db.map_spec, np.clip(fused.logodds, -cfg.prior_clamp, cfg.prior_clamp))
+    stats = {
+        "frames_used": len(frames),
+        "frames_tried": len(range(0, len(db), cfg.prior_stride)),
+        "ground_estimates": len(ground_z),
+        "z_ground": z_ground,
+        "seconds": time.perf_counter() - t0,
+    }
+    logger.info("prior map: %s", stats)
+    return prior, z_ground, stats

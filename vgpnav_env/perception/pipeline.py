@@ -1,0 +1,446 @@
+"""VGP-Nav perception: one RGB image + the database -> metric pose and metric obstacle map.
+
+Per frame (paper Sec. III, DESIGN.md "Perception"):
+
+1. retrieval: VLAD similarity to every database image, then :func:`select_references`
+   (geometry-aware Alg. 1, or plain top-k);
+2. backbone: query first, then the references (database indices as feature-cache keys);
+   relative poses ``T_qi`` and query depth at one unknown scale;
+3. motion averaging: metric ``T_wc`` from the references' known poses;
+4. ground-anchored scale: the ground peak of the query points in the gravity frame, scaled to
+   the camera height above the ground anchored at initialisation (robot standing still,
+   known camera-to-base height); falls back to the ray-implied scale when no ground is seen;
+5. occupancy: metric points (confident pixels, every ``point_stride``-th pixel) classified by
+   height and fused into the perceiver's log-odds map on top of the database's prior.
+
+A frame whose pose cannot be estimated gives ``status="lost"`` with a ``reason`` from
+:data:`LOST_REASONS` -- never an exception (bad arguments still raise ``ValueError``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import PinholeCamera
+from vgpnav_env.perception.backbones import make_backbone
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
+from vgpnav_env.perception.database import Database
+from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
+from vgpnav_env.perception.occupancy import LogOddsMap, PointClasses
+from vgpnav_env.perception.retrieval import RetrievalConfig, select_references
+from vgpnav_env.perception.scale_recovery import (
+    GroundAnchor,
+    GroundEstimate,
+    ScaleConfig,
+    ScaleEstimate,
+    ground_peak,
+    recover_metric_points,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Why a frame is lost: no reference pair passed the backbone; the references' poses disagree
+#: (rotation consensus, ray triangulation); no metric scale (no ground and no ray scale).
+LOST_REASONS = ("too few matches", "no consensus", "no ground")
+TIMING_KEYS = ("retrieval", "backbone", "motion_averaging", "scale_recovery", "occupancy", "total")
+
+
+@dataclass(frozen=True)
+class OccupancyConfig:
+    """Height classes (metres above the anchored ground) and log-odds fusion settings.
+
+    Obstacles lie between ``obstacle_min`` and the camera height (paper); ground points within
+    ``free_tol``. Only pixels with depth confidence >= ``min_confidence`` and metric depth <=
+    ``max_depth`` are used, every ``point_stride``-th pixel in both directions.
+    """
+
+    free_tol: float = 0.05
+    obstacle_min: float = 0.15
+    min_confidence: float = 0.3
+    max_depth: float = 5.0
+    point_stride: int = 2
+    l_free: float = -0.4
+    l_occ: float = 0.85
+    clamp: tuple[float, float] = (-4.0, 4.0)
+
+    def __post_init__(self) -> None:
+        if self.point_stride < 1:
+            raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
+        if self.free_tol <= 0 or self.obstacle_min <= 0 or self.max_depth <= 0:
+            raise ValueError("free_tol, obstacle_min and max_depth must be positive metres")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """All pipeline settings; the ablation switches are ``retrieval.method`` (geometry | topk),
+    ``averaging.method`` (weighted | single) and ``scale.enabled``.
+
+    ``camera_height``: the calibrated camera-to-base height (metres), the metric anchor.
+    ``scale_check_ratio``: when the ground scale and the ray-implied scale of motion averaging
+    differ by more than this factor, the ground peak is taken to be something else (a table
+    top, a plant pot seen from above) and the ray-implied scale is used (None: never).
+    """
+
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    averaging: MotionAveragingConfig = field(default_factory=MotionAveragingConfig)
+    scale: ScaleConfig = field(default_factory=ScaleConfig)
+    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
+    camera_height: float = 1.2
+    scale_check_ratio: float | None = 1.5
+
+    def __post_init__(self) -> None:
+        if not self.camera_height > 0:
+            raise ValueError(f"camera_height must be positive metres, got {self.camera_height}")
+        if self.scale_check_ratio is not None and self.scale_check_ratio <= 1:
+            raise ValueError(f"scale_check_ratio must be > 1 or None, got {self.scale_check_ratio}")
+
+    @classmethod
+    def ablation(
+        cls,
+        *,
+        retrieval: str = "geometry",
+        averaging: str = "weighted",
+        scale: bool = True,
+        k: int = 10,
+        camera_height: float = 1.2,
+    ) -> PerceptionConfig:
+        """The default config with the three ablation switches set (and ``k`` references)."""
+        return cls(
+            retrieval=RetrievalConfig(k=k, method=retrieval),
+            averaging=MotionAveragingConfig(method=averaging),
+            scale=ScaleConfig(enabled=scale),
+            camera_height=camera_height,
+        )
+
+
+@dataclass
+class PerceptionResult:
+    """One frame's navigation-ready state.
+
+    ``T_wc``: metric camera pose (4x4, OpenCV camera -> world); None when lost.
+    ``points_w`` (N, 3) float32 metric world points of the query (confident, subsampled
+    pixels; empty when lost) and their ``classes`` (free ground / obstacle masks).
+    ``occupancy``: the perceiver's fused map (the live object, after this frame).
+    ``references``: database indices used, best match first. ``scale``: metres per backbone
+    unit (nan when lost) and ``scale_source`` (ground | fallback | disabled | none).
+    ``z_ground``: anchored floor height (W, metres). ``timings``: seconds per stage
+    (:data:`TIMING_KEYS`).
+    """
+
+    status: str
+    reason: str
+    T_wc: NDArray[np.float64] | None
+    points_w: NDArray[np.float32]
+    classes: PointClasses | None
+    occupancy: LogOddsMap
+    references: NDArray[np.int64]
+    scale: float
+    scale_source: str
+    z_ground: float
+    timings: dict[str, float]
+    motion: MotionResult | None = None
+    ground: GroundEstimate | None = None
+    backbone: BackboneOutput | None = None
+    n_confident_pairs: int = 0
+    detail: str = ""
+
+    @property
+    def localized(self) -> bool:
+        return self.status == "localized"
+
+
+def _lost(reason: str, detail: str, occupancy: LogOddsMap, refs: NDArray[np.int64], **kw) -> PerceptionResult:
+    return PerceptionResult(
+        status="lost",
+        reason=reason,
+        T_wc=kw.pop("T_wc", None),
+        points_w=np.zeros((0, 3), np.float32),
+        classes=None,
+        occupancy=occupancy,
+        references=refs,
+        scale=float("nan"),
+        scale_source="none",
+        z_ground=kw.pop("z_ground", float("nan")),
+        timings=kw.pop("timings"),
+        detail=detail,
+        **kw,
+    )
+
+
+class Perceiver:
+    """Stateful VGP-Nav perception for one robot episode.
+
+    ``camera`` defaults to the database camera (query images must have its size). Call
+    :meth:`reset` per episode, optionally :meth:`initialize` with frames taken standing still
+    (else the first localized frame anchors the ground), then :meth:`perceive` per frame.
+    ``privileged`` (simulated backbone only) carries the query's true ``T_wq`` and depth; the
+    references' ``T_wi`` are filled in here from the database.
+    """
+
+    def __init__(
+        self,
+        database: Database,
+        backbone: Backbone | str = "classical",
+        camera: PinholeCamera | None = None,
+        config: PerceptionConfig | None = None,
+    ) -> None:
+        self.database = database
+        if isinstance(backbone, str):
+            options = {"feature_cache": database.feature_cache} if backbone == "classical" else {}
+            backbone = make_backbone(backbone, **options)
+        self.backbone = backbone
+        self.camera = camera or database.camera
+        if (self.camera.width, self.camera.height) != (database.camera.width, database.camera.height):
+            raise ValueError(
+                f"query camera {self.camera.width}x{self.camera.height} differs from the database camera "
+                f"{database.camera.width}x{database.camera.height}; build both at the same size"
+            )
+        self.config = config or PerceptionConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the episode: a fresh map from the prior and no ground anchor."""
+        self.map = self.database.new_map()
+        self.anchor = GroundAnchor(self.config.scale)
+        self.n_frames = 0
+
+    @property
+    def initialized(self) -> bool:
+        return self.anchor.initialized
+
+    def initialize(
+        self,
+        images: Sequence[NDArray[np.uint8]] | NDArray[np.uint8],
+        privileged: Sequence[Privileged | None] | Privileged | None = None,
+    ) -> list[PerceptionResult]:
+        """Anchor the ground from frames taken while the robot stands still (paper "Ground Height
+        Initialization"): ``z_ground = mean(t_wc.z) - camera_height`` over the localized frames.
+        Then every frame is perceived (and fused) with the anchor. If none localizes, the
+        anchor stays unset and the next localized :meth:`perceive` call sets it.
+        """
+        if isinstance(images, np.ndarray) and images.ndim == 3:
+            images = [images]
+        priv = privileged if isinstance(privileged, Sequence) else [privileged] * len(images)
+        if len(priv) != len(images):
+            raise ValueError(f"got {len(priv)} privileged entries for {len(images)} images")
+        observations = []
+        for rgb, p in zip(images, priv, strict=True):
+            loc = self._localize(rgb, p)
+            if loc.motion is not None and loc.motion.ok:
+                observations.append((loc.motion.T_wq, loc.ground))
+        if observations:
+            self.anchor.initialize(observations, self.config.camera_height)
+        return [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
+
+    def perceive(self, rgb: NDArray[np.uint8], privileged: Privileged | None = None) -> PerceptionResult:
+        """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`."""
+        t_start = time.perf_counter()
+        loc = self._localize(rgb, privileged)
+        self.n_frames += 1
+        timings = loc.timings
+        if loc.status == "lost":
+            timings["total"] = time.perf_counter() - t_start
+            return loc
+        motion, ground, out = loc.motion, loc.ground, loc.backbone
+        t0 = time.perf_counter()
+        T_wc = motion.T_wq
+        single = self.config.averaging.method == "single" and self.config.scale.enabled
+        if single and ground.found:
+            # One reference's translation is only known at the backbone scale: place the camera
+            # with the ground scale at the calibrated camera height (the single-view baseline).
+            est = ScaleEstimate(self.config.camera_height / -ground.height_b, "ground")
+            T_wc = self._single_pose(T_wc, loc.references, motion, out, est.scale)
+        if not self.anchor.initialized and not (single and not ground.found):
+            self.anchor.initialize([(T_wc, ground)], self.config.camera_height)
+        if not single:
+            est = self.anchor.scale_for(T_wc, ground, fallback_scale=motion.scale_from_rays)
+            est = self._check_scale(est, motion.scale_from_rays)
+        elif not ground.found:
+            est = ScaleEstimate(float("nan"), "none")
+        z_ground = float(self.anchor.z_ground) if self.anchor.initialized else float("nan")
+        if not est.ok:
+            timings["scale_recovery"] += time.perf_counter() - t0
+            timings["total"] = time.perf_counter() - t_start
+            return _lost(
+                "no ground",
+                "no ground peak and no ray-implied scale",
+                self.map,
+                loc.references,
+                T_wc=T_wc,
+                z_ground=z_ground,
+                timings=timings,
+                motion=motion,
+                ground=ground,
+                backbone=out,
+                n_confident_pairs=loc.n_confident_pairs,
+            )
+        points_q, _ = self._query_points(out)
+        points_q = points_q[points_q[:, 2] * est.scale <= self.config.occupancy.max_depth]
+        points_w = recover_metric_points(points_q, T_wc, est.scale)
+        timings["scale_recovery"] += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        occ = self.config.occupancy
+        classes = self.map.update(
+            points_w,
+            z_ground,
+            self.config.camera_height,
+            camera_xy=T_wc[:2, 3],
+            free_tol=occ.free_tol,
+            obstacle_min=occ.obstacle_min,
+        )
+        timings["occupancy"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+        return PerceptionResult(
+            status="localized",
+            reason="",
+            T_wc=T_wc,
+            points_w=points_w.astype(np.float32),
+            classes=classes,
+            occupancy=self.map,
+            references=loc.references,
+            scale=est.scale,
+            scale_source=est.source,
+            z_ground=z_ground,
+            timings=timings,
+            motion=motion,
+            ground=ground,
+            backbone=out,
+            n_confident_pairs=loc.n_confident_pairs,
+        )
+
+    def _check_scale(self, est: ScaleEstimate, ray_scale: float) -> ScaleEstimate:
+        r = self.config.scale_check_ratio
+        if r is None or est.source != "ground" or not (np.isfinite(ray_scale) and ray_scale > 0):
+            return est
+        if 1.0 / r <= est.scale / ray_scale <= r:
+            return est
+        return ScaleEstimate(float(ray_scale), "fallback")
+
+    def _single_pose(
+        self,
+        T_wq: NDArray[np.float64],
+        refs: NDArray[np.int64],
+        motion: MotionResult,
+        out: BackboneOutput,
+        scale: float,
+    ) -> NDArray[np.float64]:
+        """The single reference's pose with its translation at ``scale`` metres per backbone unit."""
+        i = int(np.argmax(motion.weights))
+        T_wi = self.database.poses[refs[i]]
+        T = T_wq.copy()
+        T[:3, 3] = T_wi[:3, 3] + scale * T_wi[:3, :3] @ out.T_iq[i, :3, 3]
+        return T
+
+    def _query_points(self, out: BackboneOutput) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Confident query points (N, 3) in backbone units (camera frame) and their confidences."""
+        s = self.config.occupancy.point_stride
+        depth = out.query_depth[::s, ::s]
+        conf = out.query_depth_confidence[::s, ::s]
+        mask = np.isfinite(depth) & (depth > 0) & (conf >= self.config.occupancy.min_confidence)
+        pts = self.camera.rays()[::s, ::s] * depth[..., None]
+        return pts[mask], conf[mask].astype(np.float64)
+
+    def _localize(self, rgb: NDArray[np.uint8], privileged: Privileged | None) -> PerceptionResult:
+        """Stages 1-3 and the ground peak (backbone units); a lost result or one with motion set."""
+        rgb = np.asarray(rgb)
+        expected = (self.camera.height, self.camera.width, 3)
+        if rgb.shape != expected or rgb.dtype != np.uint8:
+            raise ValueError(f"query image must be uint8 with shape {expected}, got {rgb.dtype} {rgb.shape}")
+        db = self.database
+        timings = dict.fromkeys(TIMING_KEYS, 0.0)
+        t0 = time.perf_counter()
+        sims = db.index.similarity(rgb)
+        if not np.all(np.isfinite(sims)):
+            sims = np.nan_to_num(sims, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        refs = select_references(sims, db.poses, self.config.retrieval)
+        timings["retrieval"] = time.perf_counter() - t0
+        if len(refs) == 0:
+            return _lost("too few matches", "empty database", self.map, refs, timings=timings)
+
+        t0 = time.perf_counter()
+        if privileged is not None:
+            privileged = replace(privileged, T_wi=db.poses[refs], reference_depths=None)
+        out = self.backbone(
+            rgb,
+            [db.images[i] for i in refs],
+            self.camera,
+            privileged=privileged,
+            reference_keys=[int(i) for i in refs],
+        )
+        timings["backbone"] = time.perf_counter() - t0
+        n_conf = int((out.confidence > 0).sum())
+        if n_conf == 0:
+            return _lost(
+                "too few matches",
+                f"no reference pair passed the backbone (matches {out.n_matches.tolist()})",
+                self.map,
+                refs,
+                timings=timings,
+                backbone=out,
+            )
+
+        t0 = time.perf_counter()
+        motion = average_motion(
+            db.poses[refs], out.T_qi, out.confidence, self.config.averaging, scale_valid=out.scale_valid
+        )
+        timings["motion_averaging"] = time.perf_counter() - t0
+        if not motion.ok:
+            reason = "too few matches" if motion.reason == "too few references" else "no consensus"
+            return _lost(
+                reason,
+                motion.reason,
+                self.map,
+                refs,
+                timings=timings,
+                motion=motion,
+                backbone=out,
+                n_confident_pairs=n_conf,
+            )
+
+        t0 = time.perf_counter()
+        points_q, conf = self._query_points(out)
+        ground = ground_peak(points_q, motion.T_wq[:3, :3], conf, self.config.scale)
+        timings["scale_recovery"] = time.perf_counter() - t0
+        return PerceptionResult(
+            status="localized",
+            reason="",
+            T_wc=motion.T_wq,
+            points_w=np.zeros((0, 3), np.float32),
+            classes=None,
+            occupancy=self.map,
+            references=refs,
+            scale=float("nan"),
+            scale_source="none",
+            z_ground=float("nan"),
+            timings=timings,
+            motion=motion,
+            ground=ground,
+            backbone=out,
+            n_confident_pairs=n_conf,
+        )
+
+
+def perceive(
+    query_rgb: NDArray[np.uint8],
+    database: Database,
+    *,
+    backbone: Backbone | str = "classical",
+    config: PerceptionConfig | None = None,
+    privileged: Privileged | None = None,
+) -> PerceptionResult:
+    """One-shot VGP-Nav perception of a single image (DESIGN.md's ``perceive``).
+
+    The frame itself anchors the ground (as if the robot stood still with its camera at
+    ``config.camera_height``); the map starts from the database prior. For a sequence use a
+    :class:`Perceiver`, which keeps the anchor and the fused map across frames.
+    """
+    return Perceiver(database, backbone, config=config).perceive(query_rgb, privileged)
