@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vgpnav_env.grid import GridSpec
-from vgpnav_env.scenes.primitives import PRIMITIVES, primitive_parts
+from vgpnav_env.scenes.primitives import PRIMITIVES
 from vgpnav_env.scenes.spec import ObjectSpec, SceneSpec, WallSpec
 
 # Kinds that never block the robot (they lie flat on the floor or hang on walls).
@@ -104,9 +104,3 @@ def _room_touches(grid: GridSpec, mask: NDArray[np.bool_], polygon: tuple[tuple[
     room = np.zeros(grid.shape, np.uint8)
     _fill(room, grid, [np.asarray(polygon)])
     return bool(np.any(mask & (room > 0)))
-
-
-def parts_height(o: ObjectSpec) -> float:
-    """Height of a primitive object (its tallest part's top)."""
-    _, parts = primitive_parts(o.kind, o.size)
-    return max(p.centre[2] + p.size[2] / 2 for p in parts)
