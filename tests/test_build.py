@@ -61,7 +61,7 @@ def test_summary_and_layouts(home, home_build: Path) -> None:
 def test_database_covers_navigable_area(home) -> None:
     gt = ground_truth_map(load_scene("home"), resolution=0.05, robot_radius=0.2, robot_height=1.3)
     cells = gt.spec.centres()[gt.navigable]
-    assert home.summary["navigable_area_m2"] == pytest.approx(len(cells) * 0.05**2, rel=1e-6)
+    assert home.summary["navigable_area_m2"] == pytest.approx(len(cells) * 0.05**2, abs=1e-3)
     dist, _ = cKDTree(home.database.positions[:, :2]).query(cells)
     covered = float(np.mean(dist <= 1.5))
     assert covered >= 0.9, f"only {covered:.1%} of the navigable area within 1.5 m of a database camera"
