@@ -47,7 +47,9 @@ def index(panorama: np.ndarray) -> VladIndex:
 
 
 def test_descriptors_are_unit_norm_and_deterministic(index: VladIndex, panorama: np.ndarray) -> None:
-    assert index.database.shape == (33, 32 * 128) and index.database.dtype == np.float32
+    assert (
+        index.database.shape == (33, 32 * 128 + 128) and index.database.dtype == np.float32
+    )  # VLAD + colour
     np.testing.assert_allclose(np.linalg.norm(index.database, axis=1), 1.0, atol=1e-5)
     again = VladIndex.fit(
         [panorama[:, x : x + 320] for x in range(0, 1281, STEP)], config=VladConfig(n_words=32), seed=0
@@ -86,7 +88,9 @@ def test_save_load_round_trip_and_fingerprint(index: VladIndex, panorama: np.nda
 
 def test_whitening_keeps_retrieval(panorama: np.ndarray) -> None:
     crops = [panorama[:, x : x + 320] for x in range(0, 1281, STEP)]
-    idx = VladIndex.fit(crops, config=VladConfig(n_words=32, whiten=True, whiten_dim=16), seed=0)
+    idx = VladIndex.fit(
+        crops, config=VladConfig(n_words=32, whiten=True, whiten_dim=16, colour_weight=0.0), seed=0
+    )
     assert idx.database.shape == (33, 16)
     assert int(np.argmax(idx.similarity(panorama[:, 200:520]))) == 5
 

@@ -2,8 +2,10 @@
 
 - :class:`VladIndex` turns pixels into one global descriptor per image (DenseVLAD-style:
   RootSIFT on a dense grid, a k-means vocabulary learned on the database, VLAD with
-  intra-normalisation then L2, optional PCA-whitening). Similarity = dot product of
-  descriptors (cosine, in [-1, 1]).
+  intra-normalisation then L2, optional PCA-whitening), optionally concatenated with a
+  coarse colour layout (hue-saturation histograms of a 2x2 image grid), which helps
+  tell rooms apart in rendered indoor scenes. Similarity = dot product of descriptors
+  (cosine, in [-1, 1]).
 - :func:`select_references` is the paper's Alg. 1 (geometry-aware retrieval) or plain top-k.
 
 Database poses ``T_w`` are ``T_wi`` (camera i -> world, OpenCV camera, metres).
@@ -24,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 #: Bumped whenever the descriptor computation changes, so stale caches are not loaded.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _ARRAYS_FILE = "vlad_index.npz"
 _META_FILE = "vlad_index.json"
 
@@ -36,6 +38,11 @@ class VladConfig:
     Images are converted to grey and resized so the longer side is ``max_side`` pixels;
     SIFT descriptors are computed on a dense grid (``grid_step`` pixels apart) at every
     patch size in ``patch_sizes`` (pixels, SIFT keypoint diameter) and RootSIFT-normalised.
+    ``power_norm`` applies signed square roots to the VLAD residuals (burstiness).
+    ``colour_weight`` w > 0 appends the colour layout so that the similarity is
+    ``(vlad . vlad' + w colour . colour') / (1 + w)``; 0 = pure DenseVLAD. Defaults were
+    chosen on the built-in ``home`` scene (database vs changed-layout queries, best match
+    within 1.5 m / 45 deg: 0.60 plain, 0.62 with power_norm, 0.72 with colour_weight 1).
     """
 
     max_side: int = 160
@@ -44,9 +51,10 @@ class VladConfig:
     n_words: int = 64
     max_training_descriptors: int = 60000
     kmeans_iterations: int = 40
-    power_norm: bool = False
+    power_norm: bool = True
     whiten: bool = False
     whiten_dim: int = 256
+    colour_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if self.max_side < 32:
@@ -60,6 +68,8 @@ class VladConfig:
             raise ValueError(f"n_words must be >= 2, got {self.n_words}")
         if self.whiten_dim < 1:
             raise ValueError(f"whiten_dim must be >= 1, got {self.whiten_dim}")
+        if self.colour_weight < 0:
+            raise ValueError(f"colour_weight must be >= 0, got {self.colour_weight}")
 
 
 def _to_grey(image: ArrayLike, max_side: int) -> NDArray[np.uint8]:
@@ -107,6 +117,22 @@ class _DenseRootSift:
         desc = desc.astype(np.float32)
         desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)
         return np.sqrt(desc)
+
+
+def _colour_layout(image: ArrayLike, grid: int = 2) -> NDArray[np.float32]:
+    """Unit-norm colour layout: square-rooted 8x4 hue-saturation histograms of a grid x grid split."""
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    hsv = cv2.cvtColor(cv2.resize(img, (64, 48), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2HSV)
+    parts = []
+    for rows in np.array_split(np.arange(48), grid):
+        for cols in np.array_split(np.arange(64), grid):
+            cell = np.ascontiguousarray(hsv[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1])
+            h = cv2.calcHist([cell], [0, 1], None, [8, 4], [0, 180, 0, 256]).ravel()
+            parts.append(np.sqrt(h / max(float(h.sum()), 1e-12)))
+    v = np.concatenate(parts).astype(np.float32)
+    return v / max(float(np.linalg.norm(v)), 1e-12)
 
 
 def _vlad(desc: NDArray[np.float32], centres: NDArray[np.float32], power_norm: bool) -> NDArray[np.float32]:
@@ -203,14 +229,20 @@ class VladIndex:
             eig = s[:dim] ** 2 / max(len(images) - 1, 1)
             index.pca_mean = mean.astype(np.float32)
             index.pca_projection = (Vt[:dim] / np.sqrt(eig + 1e-6 * eig[0])[:, None]).astype(np.float32)
-            index.database = index._project(raw)
+        index.database = index._global(raw, images)
         return index
 
-    def _project(self, raw: NDArray[np.float32]) -> NDArray[np.float32]:
-        if self.pca_projection is None or self.pca_mean is None:
-            return raw.astype(np.float32)
-        out = (raw - self.pca_mean) @ self.pca_projection.T
-        return (out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+    def _global(self, raw: NDArray[np.float32], images: Sequence[ArrayLike]) -> NDArray[np.float32]:
+        """Final descriptors from raw VLADs (n, K*128): whitening, then the colour layout."""
+        out = raw.astype(np.float32)
+        if self.pca_projection is not None and self.pca_mean is not None:
+            out = (raw - self.pca_mean) @ self.pca_projection.T
+            out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+        w = self.config.colour_weight
+        if w > 0:
+            colour = np.stack([_colour_layout(im) for im in images])
+            out = np.concatenate([out, np.sqrt(w) * colour], axis=1) / np.sqrt(1.0 + w)
+        return out.astype(np.float32)
 
     def describe(self, images: Sequence[ArrayLike] | NDArray[np.uint8]) -> NDArray[np.float32]:
         """Global descriptors (n, D) float32, unit L2 norm, of uint8 RGB (HxWx3) or grey images.
@@ -223,15 +255,11 @@ class VladIndex:
             images = [images]
         if self._extractor is None:
             self._extractor = _DenseRootSift(self.config)
+        c = self.config
         raw = np.stack(
-            [
-                _vlad(
-                    self._extractor(_to_grey(im, self.config.max_side)), self.centres, self.config.power_norm
-                )
-                for im in images
-            ]
+            [_vlad(self._extractor(_to_grey(im, c.max_side)), self.centres, c.power_norm) for im in images]
         )
-        return self._project(raw)
+        return self._global(raw, images)
 
     def similarity(self, image: ArrayLike) -> NDArray[np.float64]:
         """Similarity (M,) of one query image to every database image (dot products)."""
