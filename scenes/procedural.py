@@ -651,7 +651,10 @@ def _edit(
     room_of = {r.name: r for r in rooms}
     placer = _Placer(stub, rooms, rng)
     moves: list[tuple[str, tuple[float, float, float, float]]] = []
-    for i in order[len(removed) : len(removed) + int(rng.integers(3, 6))]:
+    n_moves = int(rng.integers(3, 6))
+    for i in order[len(removed) :]:
+        if len(moves) >= n_moves:
+            break
         o = movable[i]
         r = next(q for q in room_of.values() if q.x0 <= o.x <= q.x1 and q.y0 <= o.y <= q.y1)
         placer.objects = [p for p in current if p.name != o.name]
