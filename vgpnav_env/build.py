@@ -279,7 +279,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from vgpnav_env.scenes import BUILTIN_SCENES, TEXTURE_LEVELS
     from vgpnav_env.scenes.lighting import LIGHTING_LEVELS
 
-    parser.add_argument("scene", help=f"built-in scene ({', '.join(BUILTIN_SCENES)}) or a scene spec file")
+    parser.add_argument(
+        "scene",
+        help=f"scene source: built-in ({', '.join(BUILTIN_SCENES)}), procedural 'style:seed' (e.g. home:7), "
+        "a spec .yaml file or a mesh-scene directory",
+    )
     parser.add_argument(
         "--out", type=Path, help="output directory (default: $VGPNAV_CACHE/<scene>-<W>x<H>-s<seed>-<texture>)"
     )

@@ -24,6 +24,10 @@ from typing import NoReturn
 #: Command name ("build", or "group name") -> (module path, one-line help).
 COMMANDS: dict[str, tuple[str, str]] = {
     "build": ("vgpnav_env.build", "render and save a scene's database and query runs"),
+    "eval localization": ("vgpnav_env.eval.localization", "median pose error and recall of VGP-Nav"),
+    "eval perception": ("vgpnav_env.eval.perception", "metric perception Acc / Comp / Overall"),
+    "eval timing": ("vgpnav_env.eval.timing", "seconds per frame of every perception module"),
+    "eval ablations": ("vgpnav_env.eval.ablations", "paper Tables IV and V: retrieval, averaging, scale"),
     "eval navigation": (
         "vgpnav_env.eval.navigation",
         "point-goal success rate, SPL and soft SPL of an agent",
@@ -99,6 +103,14 @@ def _selected(argv: Sequence[str]) -> str | None:
     return None
 
 
+def _add_command(action: argparse._SubParsersAction, name: str, selected: str | None) -> None:
+    module, help_text = COMMANDS[name]
+    sub = action.add_parser(name.split()[-1], help=help_text, description=help_text)
+    sub.set_defaults(_command=name)
+    if name == selected:
+        importlib.import_module(module).add_arguments(sub)
+
+
 def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
     """The ``vgpnav`` parser; only the command selected by ``argv`` gets its arguments (imported)."""
     parser = _Parser(prog=PROG, description="vgpnav-env: monocular metric-aware navigation benchmark.")
@@ -107,18 +119,17 @@ def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
     )
     top = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     selected = _selected(argv)
-    leaves: dict[str, argparse._SubParsersAction] = {"": top}
+    for name in COMMANDS:  # top-level commands first, then the groups
+        if " " not in name:
+            _add_command(top, name, selected)
+    leaves: dict[str, argparse._SubParsersAction] = {}
     for group, help_text in GROUPS.items():
         if _command_help(group):
             sub = top.add_parser(group, help=help_text, description=help_text)
             leaves[group] = sub.add_subparsers(dest="subcommand", metavar="NAME", required=True)
-    for name, (module, help_text) in COMMANDS.items():
-        words = name.split()
-        action = leaves[words[0] if len(words) == 2 else ""]
-        sub = action.add_parser(words[-1], help=help_text, description=help_text)
-        sub.set_defaults(_command=name)
-        if name == selected:
-            importlib.import_module(module).add_arguments(sub)
+    for name in COMMANDS:
+        if " " in name:
+            _add_command(leaves[name.split()[0]], name, selected)
     return parser
 
 
