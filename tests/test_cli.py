@@ -147,3 +147,11 @@ def test_build_refuses_foreign_out_dir(tmp_path: Path, capsys: pytest.CaptureFix
     line = _one_error_line(err)
     assert code == 1 and "refusing to replace" in line and str(out) in line
     assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_unimportable_command_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(cli.COMMANDS, "eval missing", ("vgpnav_env.eval.no_such_module", "not written yet"))
+    code, _, err = _run(["eval", "missing"], capsys)
+    assert code == 2 and "command 'eval missing' is unavailable" in _one_error_line(err)

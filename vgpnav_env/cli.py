@@ -108,7 +108,11 @@ def _add_command(action: argparse._SubParsersAction, name: str, selected: str | 
     sub = action.add_parser(name.split()[-1], help=help_text, description=help_text)
     sub.set_defaults(_command=name)
     if name == selected:
-        importlib.import_module(module).add_arguments(sub)
+        try:
+            imported = importlib.import_module(module)
+        except ImportError as e:
+            sub.error(f"command {name!r} is unavailable: cannot import {module} ({e})")
+        imported.add_arguments(sub)
 
 
 def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
