@@ -1,0 +1,115 @@
+"""Timing protocol: seconds per frame of every VGP-Nav module (paper Table VI).
+
+``vgpnav eval timing SCENE --backbone B [--queries N] [--k 10] --out DIR [--build DIR]``
+
+Runs the pipeline over ``N`` evenly spaced query frames (the first frame warms up caches and
+is not timed) and reports, over the frames that localized (all frames if none did; a lost frame
+skips the later stages), the median seconds per stage in ``seconds_per_frame`` (retrieval,
+backbone, motion_averaging, scale_recovery, occupancy, total) beside the paper's figures
+(VGGT on an RTX 5090), plus the backbone's own breakdown when it reports one. CPU timings
+depend on the machine's load: the report records the CPU count and load average.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from vgpnav_env.eval.perception_runs import (
+    add_pipeline_arguments,
+    add_scene_arguments,
+    config_from_args,
+    evaluate_queries,
+    resolve_build,
+)
+from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.perception.pipeline import TIMING_KEYS, PerceptionConfig
+
+#: Paper Table VI, seconds per frame (VGGT backbone, RTX 5090); occupancy is not listed there.
+PAPER_SECONDS = {
+    "retrieval": 0.027,
+    "backbone": 0.420,
+    "motion_averaging": 0.005,
+    "scale_recovery": 0.040,
+    "occupancy": None,
+    "total": 0.492,
+}
+
+
+def evaluate_timing(
+    build_dir: Path,
+    *,
+    backbone: str = "classical",
+    config: PerceptionConfig | None = None,
+    n_queries: int | None = 20,
+    seed: int = 0,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """``seconds_per_frame`` medians per stage (and per backbone sub-stage), with percentiles."""
+    evaluation = evaluate_queries(
+        build_dir, backbone=backbone, config=config, n_queries=n_queries, seed=seed, progress=progress
+    )
+    timed = evaluation.records[1:] or evaluation.records
+    records = [r for r in timed if r.status == "localized"] or timed
+    table = {k: np.array([r.timings.get(k, np.nan) for r in records], float) for k in TIMING_KEYS}
+    sub = sorted({k for r in records for k in r.timings} - set(TIMING_KEYS))
+    return {
+        "seconds_per_frame": {k: float(np.nanmedian(v)) for k, v in table.items()},
+        "seconds_p90": {k: float(np.nanpercentile(v, 90)) for k, v in table.items()},
+        "backbone_seconds": {
+            k: float(np.nanmedian([r.timings.get(k, np.nan) for r in records])) for k in sub
+        },
+        "paper_seconds_per_frame": PAPER_SECONDS,
+        "n_frames": len(records),
+        "n_lost": sum(r.status == "lost" for r in timed),
+        "cpu_count": os.cpu_count(),
+        "load_average": list(os.getloadavg()),
+    }
+
+
+def timing_figure(metrics: dict[str, Any]) -> Figure:
+    fig = Figure(figsize=(7, 3.2))
+    ax = fig.subplots()
+    keys = [k for k in TIMING_KEYS if k != "total"]
+    x = np.arange(len(keys))
+    ours = [metrics["seconds_per_frame"][k] for k in keys]
+    paper = [PAPER_SECONDS[k] or 0.0 for k in keys]
+    ax.bar(x - 0.2, ours, 0.4, label="ours (median, CPU)")
+    ax.bar(x + 0.2, paper, 0.4, label="paper (RTX 5090)")
+    ax.set_xticks(x, [k.replace("_", "\n") for k in keys])
+    ax.set_ylabel("seconds per frame")
+    ax.legend()
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_scene_arguments(parser, queries=20)
+    add_pipeline_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    build = resolve_build(args)
+    metrics = evaluate_timing(
+        build, backbone=args.backbone, config=config_from_args(args), n_queries=args.queries, seed=args.seed
+    )
+    rows = [
+        (k, metrics["seconds_per_frame"][k], metrics["seconds_p90"][k], PAPER_SECONDS[k]) for k in TIMING_KEYS
+    ]
+    sections = [
+        f"Backbone `{args.backbone}`, k = {args.k}, retrieval {args.retrieval}, averaging {args.averaging}; "
+        f"{metrics['n_frames']} timed frames on {metrics['cpu_count']} CPUs "
+        f"(load average {metrics['load_average'][0]:.1f}).",
+        "## Seconds per frame\n\n"
+        + markdown_table(["module", "ours (median)", "ours (p90)", "paper (RTX 5090, VGGT)"], rows),
+        "## Backbone breakdown (median s)\n\n"
+        + markdown_table(["step", "seconds"], list(metrics["backbone_seconds"].items())),
+    ]
+    write_report(args.out, "Per-module timing", metrics, sections, {"timing.png": timing_figure(metrics)})
+    return 0

@@ -1,0 +1,97 @@
+"""The perception protocols (localization, perception, timing, ablations) through the CLI, tiny N."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tiny_build import make_tiny_build
+
+from vgpnav_env.cli import main
+from vgpnav_env.eval.perception_runs import accuracy_completeness, query_subset
+
+
+@pytest.fixture(scope="module")
+def build(tmp_path_factory) -> Path:
+    return make_tiny_build(tmp_path_factory.mktemp("tiny_eval") / "build")
+
+
+def report(out: Path) -> dict:
+    assert (out / "report.md").is_file()
+    return json.loads((out / "report.json").read_text())
+
+
+def test_localization_report(build: Path, tmp_path: Path) -> None:
+    out = tmp_path / "loc"
+    code = main(["eval", "localization", "tiny", "--build", str(build), "--backbone", "simulated",
+                 "--queries", "3", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    r = report(out)
+    for key in ("median_translation_m", "median_rotation_deg", "recall_5cm_5deg", "recall_10cm_10deg",
+                "recall_25cm_2deg", "n_queries", "n_lost", "records"):  # fmt: skip
+        assert key in r
+    assert r["n_queries"] == 3 and len(r["records"]) == 3 and r["n_lost"] == 0
+    # The simulated backbone without noise is exact.
+    assert r["median_translation_m"] < 0.01 and r["recall_5cm_5deg"] == 1.0
+    assert (out / "errors.png").is_file()
+
+
+def test_perception_report_and_scale_ablation(build: Path, tmp_path: Path) -> None:
+    metric = {}
+    for flag in ([], ["--no-scale-recovery"]):
+        out = tmp_path / ("noscale" if flag else "scale")
+        args = ["eval", "perception", "tiny", "--build", str(build), "--backbone", "simulated",
+                "--queries", "3", "--out", str(out), *flag]  # fmt: skip
+        assert main(args) == 0
+        r = report(out)
+        assert {"acc_m", "comp_m", "overall_m", "n_frames"} <= set(r)
+        assert r["overall_m"] == pytest.approx(0.5 * (r["acc_m"] + r["comp_m"]))
+        metric[bool(flag)] = r
+    assert (tmp_path / "scale" / "points.png").is_file()
+    # Exact poses and depth: centimetre-level Acc/Comp with the ground-anchored scale ...
+    assert metric[False]["acc_m"] < 0.03 and metric[False]["comp_m"] < 0.05
+    # ... and far worse at the backbone's unknown scale.
+    assert metric[True]["acc_m"] > 3 * metric[False]["acc_m"]
+
+
+def test_timing_report(build: Path, tmp_path: Path) -> None:
+    out = tmp_path / "timing"
+    assert main(["eval", "timing", "tiny", "--build", str(build), "--queries", "3", "--out", str(out)]) == 0
+    r = report(out)
+    assert set(r["seconds_per_frame"]) == {
+        "retrieval",
+        "backbone",
+        "motion_averaging",
+        "scale_recovery",
+        "occupancy",
+        "total",
+    }
+    assert r["paper_seconds_per_frame"]["total"] == 0.492
+    assert r["seconds_per_frame"]["total"] >= r["seconds_per_frame"]["backbone"] > 0
+
+
+def test_ablations_report(build: Path, tmp_path: Path) -> None:
+    out = tmp_path / "abl"
+    args = ["eval", "ablations", "tiny", "--build", str(build), "--backbone", "simulated",
+            "--queries", "2", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    r = report(out)
+    assert len(r["table_iv"]) == 4 and len(r["table_v"]) == 4
+    assert [row["paper_translation_cm"] for row in r["table_iv"]] == [11.3, 10.8, 3.4, 3.0]
+    assert [row["paper_acc_m"] for row in r["table_v"]] == [1.74, 0.61, 0.09, 0.08]
+    full, unscaled = r["table_v"][3], r["table_v"][1]
+    assert full["acc_m"] < unscaled["acc_m"]
+
+
+def test_query_subset_and_metrics() -> None:
+    assert query_subset(10, 0).tolist() == list(range(10))
+    assert query_subset(10, 3).tolist() == [0, 4, 9] or query_subset(10, 3).tolist() == [0, 5, 9]
+    with pytest.raises(ValueError, match=">= 0"):
+        query_subset(10, -1)
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0, 1, (500, 3))
+    acc, comp = accuracy_completeness(gt + [0.1, 0.0, 0.0], gt, rng)
+    assert acc <= 0.1 + 1e-9 and comp <= 0.1 + 1e-9 and acc > 0.05
+    assert np.isnan(accuracy_completeness(np.zeros((0, 3)), gt, rng)[0])
