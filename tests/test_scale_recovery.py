@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vgpnav_env.geometry import PinholeCamera, camera_pose, transform_points
+from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, transform_points
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
     GroundEstimate,
     ScaleConfig,
     ground_peak,
+    reconstruction_points,
     recover_metric_points,
 )
 
@@ -154,3 +155,39 @@ def test_anchor_fallback_disabled_and_metric_points() -> None:
     np.testing.assert_allclose(P_w, truth, atol=0.01 * 8.0)
     floor = truth[..., 2] < 0.01
     assert np.abs(P_w[floor][:, 2]).max() < 0.01
+
+
+def test_references_supply_the_ground_the_query_cannot_see() -> None:
+    T_wq = camera_pose([4.6, 0.0, CAMERA_HEIGHT], 0.0, 0.0)  # facing a wall, no floor in view
+    T_wi = np.array([camera_pose([1.0, y, 1.5], 0.0, np.deg2rad(25)) for y in (-1.0, 1.0)])
+    T_qi = np.array([invert_pose(T_wq) @ T for T in T_wi])
+    T_qi[:, :3, 3] *= UNKNOWN_SCALE
+    q_depth = raycast_depth(T_wq) * UNKNOWN_SCALE
+    r_depth = np.array([raycast_depth(T) for T in T_wi]) * UNKNOWN_SCALE
+    P, w = reconstruction_points(CAM, q_depth)
+    assert not ground_peak(P, T_wq[:3, :3], w).found
+    P, w = reconstruction_points(CAM, q_depth, None, T_qi, r_depth, np.array([0.9, 0.8]))
+    g = ground_peak(P, T_wq[:3, :3], w)
+    assert g.found and g.height_b == pytest.approx(-CAMERA_HEIGHT * UNKNOWN_SCALE, rel=0.01)
+    # Zero-weight references (failed pairs) add nothing.
+    P0, _ = reconstruction_points(CAM, q_depth, None, T_qi, r_depth, np.zeros(2))
+    assert len(P0) == len(reconstruction_points(CAM, q_depth)[0])
+    with pytest.raises(ValueError, match="reference_depths"):
+        reconstruction_points(CAM, q_depth, None, T_qi[:1], r_depth)
+
+
+def test_prior_from_a_scale_hint_picks_the_matching_peak() -> None:
+    rng = np.random.default_rng(6)
+    table = [(np.array([0.6, -1.5, 0.0]), np.array([2.0, 1.5, 0.75]))]
+    T_wc = camera_pose([0.0, 0.0, CAMERA_HEIGHT], 0.0, np.deg2rad(45))
+    pts = backbone_points(T_wc, rng, boxes=table)
+    strict = ScaleConfig(relative_peak_support=1.0)  # would take the table top without a prior
+    anchor = GroundAnchor(strict)
+    anchor.initialize([(T_wc, None)], CAMERA_HEIGHT)
+    prior = anchor.expected_height_b(T_wc, scale_hint=1.1 / UNKNOWN_SCALE)  # a 10 % off scale guess
+    g = ground_peak(pts, T_wc[:3, :3], config=strict, prior_height_b=prior)
+    assert g.found and g.height_b == pytest.approx(-CAMERA_HEIGHT * UNKNOWN_SCALE, rel=0.01)
+    assert anchor.scale_for(T_wc, g).scale == pytest.approx(1.0 / UNKNOWN_SCALE, rel=0.01)
+    # A prior matching nothing: no ground rather than a wrong one.
+    assert not ground_peak(pts, T_wc[:3, :3], prior_height_b=prior * 0.2).found
+    assert anchor.expected_height_b(T_wc, float("nan")) is None

@@ -6,6 +6,11 @@ the camera are ``h = (R_wq p)_z``. The ground is the dominant peak of the height
 distribution below the camera, at ``h_ground_b < 0`` (backbone units). With the ground
 height ``z_ground`` anchored in W at initialisation (camera pose minus the calibrated
 camera height), each frame's scale is ``(t_wq.z - z_ground) / (-h_ground_b)``.
+
+Recommended use (measured on the built-in ``home`` scene, query run, 2 % depth noise:
+ground within 3 % in 84/110 frames from the query alone, 101/101 found frames with the
+references and a prior): histogram the whole reconstruction (:func:`reconstruction_points`)
+and pass ``GroundAnchor.expected_height_b(T_wq, MotionResult.scale_from_rays)`` as the prior.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter1d
 
-from vgpnav_env.geometry import transform_points
+from vgpnav_env.geometry import PinholeCamera, transform_points
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,7 @@ class ScaleConfig:
     min_contrast: float = 1.8
     wide_factor: int = 10
     levels: tuple[int, ...] = (1, 2, 4)
+    prior_tolerance: float = 0.25
     height_source: Literal["pose", "calibrated"] = "pose"
 
     def __post_init__(self) -> None:
@@ -58,6 +64,8 @@ class ScaleConfig:
             raise ValueError("need min_support in [0, 1] and relative_peak_support in (0, 1]")
         if self.min_contrast < 1 or self.wide_factor < 1:
             raise ValueError("need min_contrast >= 1 and wide_factor >= 1")
+        if not self.prior_tolerance > 0:
+            raise ValueError(f"prior_tolerance must be > 0, got {self.prior_tolerance}")
         if not self.levels or min(self.levels) < 1:
             raise ValueError(f"levels must be non-empty integers >= 1, got {self.levels}")
         if self.height_source not in ("pose", "calibrated"):
@@ -96,12 +104,17 @@ def ground_peak(
     R_wq: ArrayLike,
     weights: ArrayLike | None = None,
     config: ScaleConfig | None = None,
+    prior_height_b: float | None = None,
 ) -> GroundEstimate:
     """Ground height (backbone units, < 0) below the camera from query points (N, 3) or (H, W, 3).
 
-    ``points_q`` are in the query camera frame; ``R_wq`` (3x3) rotates them into the gravity
-    frame (z up); ``weights`` (same leading shape, >= 0, e.g. depth confidence) weight the
-    histogram. Non-finite points and zero weights are ignored.
+    ``points_q`` are in the query camera frame -- the query's own points or the whole
+    reconstruction (see :func:`reconstruction_points`; references widen the view of the
+    ground); ``R_wq`` (3x3) rotates them into the gravity frame (z up); ``weights`` (same
+    leading shape, >= 0, e.g. depth confidence) weight the histogram. Non-finite points and
+    zero weights are ignored. ``prior_height_b`` (< 0, e.g. from
+    :meth:`GroundAnchor.expected_height_b`) restricts the ground to peaks within
+    ``config.prior_tolerance`` (relative) of it and then drops the relative-support rule.
     """
     config = config or ScaleConfig()
     P = np.asarray(points_q, float).reshape(-1, 3)
@@ -118,8 +131,11 @@ def ground_peak(
     hb, wb = h[below], w[below]
     median_depth = float(np.median(-hb))
     best: tuple[float, float, float, float] | None = None  # (lo edge, hi edge, support, centre)
+    if prior_height_b is not None and not (np.isfinite(prior_height_b) and prior_height_b < 0):
+        raise ValueError(f"prior_height_b must be a negative number or None, got {prior_height_b}")
     for level in config.levels:
-        found = _lowest_peak(hb, wb, total, level * config.bin_fraction * median_depth, config)
+        width = level * config.bin_fraction * median_depth
+        found = _lowest_peak(hb, wb, total, width, config, prior_height_b)
         # A coarser level only wins with a peak below the finer one's window.
         if found is not None and (best is None or found[3] < best[0]):
             best = found
@@ -141,7 +157,12 @@ def ground_peak(
 
 
 def _lowest_peak(
-    hb: NDArray[np.float64], wb: NDArray[np.float64], total: float, width: float, config: ScaleConfig
+    hb: NDArray[np.float64],
+    wb: NDArray[np.float64],
+    total: float,
+    width: float,
+    config: ScaleConfig,
+    prior_height_b: float | None,
 ) -> tuple[float, float, float, float] | None:
     """Window (lo, hi edges), support and centre of the lowest qualifying histogram peak, or None."""
     lo = float(hb.min())
@@ -166,13 +187,64 @@ def _lowest_peak(
     wide_density = (csum[whi_i] - csum[wlo_i]) / (whi_i - wlo_i)
     contrast = density / np.maximum(wide_density, 1e-300)
     ok = contrast >= config.min_contrast
-    dominant = float(support[ok].max()) if ok.any() else 0.0
-    ok &= support >= max(config.min_support, config.relative_peak_support * dominant)
+    centres = 0.5 * (edges[peaks] + edges[peaks + 1])
+    if prior_height_b is not None:
+        ok &= np.abs(centres / prior_height_b - 1.0) <= config.prior_tolerance
+        ok &= support >= config.min_support
+    else:
+        dominant = float(support[ok].max()) if ok.any() else 0.0
+        ok &= support >= max(config.min_support, config.relative_peak_support * dominant)
     if not ok.any():
         return None
     j = int(np.flatnonzero(ok)[0])  # peaks are sorted by height: the lowest qualifying one
-    centre = 0.5 * (edges[peaks[j]] + edges[peaks[j] + 1])
-    return float(edges[lo_i[j]]), float(edges[hi_i[j]]), float(support[j]), float(centre)
+    return float(edges[lo_i[j]]), float(edges[hi_i[j]]), float(support[j]), float(centres[j])
+
+
+def reconstruction_points(
+    camera: PinholeCamera,
+    query_depth: ArrayLike,
+    query_confidence: ArrayLike | None = None,
+    T_qi: ArrayLike | None = None,
+    reference_depths: ArrayLike | None = None,
+    reference_weights: ArrayLike | None = None,
+    stride: int = 2,
+    reference_stride: int = 4,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Backbone points (N, 3) in the QUERY camera frame and their weights (N,).
+
+    The query's z-depth (H, W) (0 / non-finite = unknown) weighted by ``query_confidence``,
+    plus, when given, each reference's depth (k, H, W) moved into the query frame with
+    ``T_qi`` (k, 4, 4) and weighted by ``reference_weights`` (k,) (e.g. the backbone
+    confidence, 0 for pairs off the common scale). Pixels are subsampled by the strides.
+    """
+    rays = camera.rays()
+    qd = np.asarray(query_depth, float)
+    qc = np.ones_like(qd) if query_confidence is None else np.asarray(query_confidence, float)
+    if qd.shape != rays.shape[:2] or qc.shape != qd.shape:
+        raise ValueError(
+            f"query depth/confidence must have shape {rays.shape[:2]}, got {qd.shape}, {qc.shape}"
+        )
+    d = qd[::stride, ::stride]
+    keep = np.isfinite(d) & (d > 0)
+    points = [(rays[::stride, ::stride] * d[..., None])[keep]]
+    weights = [qc[::stride, ::stride][keep]]
+    if reference_depths is not None:
+        rd = np.asarray(reference_depths, float)
+        T = np.asarray(T_qi, float)
+        k = len(rd)
+        rw = np.ones(k) if reference_weights is None else np.asarray(reference_weights, float)
+        if rd.shape[1:] != qd.shape or T.shape != (k, 4, 4) or rw.shape != (k,):
+            raise ValueError(
+                f"need reference_depths (k, {qd.shape[0]}, {qd.shape[1]}), T_qi (k, 4, 4) and "
+                f"reference_weights (k,); got {rd.shape}, {T.shape}, {rw.shape}"
+            )
+        r_rays = rays[::reference_stride, ::reference_stride]
+        for i in np.flatnonzero(rw > 0):
+            d = rd[i, ::reference_stride, ::reference_stride]
+            keep = np.isfinite(d) & (d > 0)
+            points.append(transform_points(T[i], (r_rays * d[..., None])[keep]))
+            weights.append(np.full(int(keep.sum()), rw[i]))
+    return np.concatenate(points), np.concatenate(weights)
 
 
 def recover_metric_points(points_q_b: ArrayLike, T_wq: ArrayLike, scale: float) -> NDArray[np.float64]:
@@ -225,6 +297,17 @@ class GroundAnchor:
         if self.config.height_source == "calibrated":
             return self.camera_height_m
         return float(np.asarray(T_wq, float)[2, 3]) - self.z_ground
+
+    def expected_height_b(self, T_wq: ArrayLike, scale_hint: float) -> float | None:
+        """Ground height in backbone units implied by a scale guess (metres per unit), or None.
+
+        E.g. with ``MotionResult.scale_from_rays`` as the hint, pass the result to
+        :func:`ground_peak` as ``prior_height_b`` so a table top is not taken for the floor.
+        """
+        if not (np.isfinite(scale_hint) and scale_hint > 0):
+            return None
+        height = self.camera_height(T_wq)
+        return -height / scale_hint if height > 0 else None
 
     def scale_for(
         self, T_wq: ArrayLike, ground: GroundEstimate, fallback_scale: float | None = None
