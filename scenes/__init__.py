@@ -5,7 +5,9 @@ Public entry point: ``load_scene(source, layout, texture, lighting) -> Scene``.
 
 from vgpnav_env.scenes.lighting import LIGHTING_LEVELS, LIGHTING_PRESETS, LightingPreset
 from vgpnav_env.scenes.materials import MATERIAL_KINDS, TEXTURE_LEVELS, make_material
+from vgpnav_env.scenes.mesh_scene import export_mesh_scene, load_mesh_scene
 from vgpnav_env.scenes.meshes import build_scene, object_of
+from vgpnav_env.scenes.procedural import generate
 from vgpnav_env.scenes.registry import (
     BUILTIN_SCENES,
     STYLES,
@@ -31,8 +33,11 @@ __all__ = [
     "SceneMesh",
     "SceneSpec",
     "build_scene",
+    "export_mesh_scene",
+    "generate",
     "list_layouts",
     "load_scene",
+    "load_mesh_scene",
     "load_scene_spec",
     "load_spec",
     "make_material",
