@@ -2,15 +2,22 @@
 
 Per (query, reference i) pair: RootSIFT features (cached per reference key), mutual nearest
 neighbours with Lowe's ratio test, poselib's 5-point LO-RANSAC relative pose with known
-intrinsics, and triangulation of the inliers. Pair scales are tied together through query
-keypoints seen in several pairs (their depths must agree), then the shared scale is fixed by
+intrinsics (pairs under ``min_inliers`` fail: confidence 0), and triangulation of the inliers.
+Pair scales are tied together through query keypoints seen in several pairs (their depths must
+agree up to one factor per pair), then the shared scale is fixed by
 
     scale convention ``"median_query_depth"``: the median depth of the triangulated query
     keypoints is 1.
 
-A dense query depth comes from an NCC plane sweep over inverse-depth planes at reduced
-resolution against the best references, with a confidence from matching score, uniqueness,
-texture and visibility.
+Pairs outside the largest consistent group keep their rotation and translation direction but
+get ``scale_valid = False`` (and their confidence times ``unlinked_confidence_factor``).
+Pair confidence = min(1, inliers / full_confidence_inliers) * sqrt(inlier ratio) *
+clip(median parallax / full_confidence_parallax_deg, 0.1, 1).
+
+A dense query depth comes from an NCC plane sweep over fronto-parallel inverse-depth planes at
+reduced resolution against the widest-baseline of the most confident linked references, with a
+per-pixel confidence = matching score * uniqueness * texture * visibility (0 where no
+reference sees the pixel; depth 0 there).
 """
 
 from __future__ import annotations
@@ -35,7 +42,20 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ClassicalConfig:
-    """Knobs of the classical backbone (pixels are full-resolution unless stated)."""
+    """Knobs of the classical backbone (pixels are full-resolution unless stated).
+
+    Features: ``max_keypoints`` SIFT keypoints with ``sift_contrast_threshold`` (low, because
+    rendered interiors are low-contrast: at OpenCV's 0.04 a realistic room gives ~60 keypoints),
+    optional CLAHE (``clahe_clip`` > 0). Matching: ``ratio`` test, ``mutual`` check. Two-view:
+    ``max_epipolar_error`` (px), RANSAC iteration bounds, ``min_inliers``. Scale linking: query
+    keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
+    log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Plane sweep: image scale,
+    number of planes, references (best ``sweep_references`` by baseline among the
+    ``sweep_candidates`` most confident; per pixel the mean NCC of the ``sweep_keep_best`` best),
+    NCC window (px at sweep scale), depth range from sparse-depth percentiles widened by
+    ``depth_range_margin``; confidence terms ``min_ncc``, ``full_confidence_margin``
+    (uniqueness), ``min_texture_std`` (grey levels).
+    """
 
     max_keypoints: int = 1500
     sift_contrast_threshold: float = 0.002
@@ -50,7 +70,8 @@ class ClassicalConfig:
     full_confidence_parallax_deg: float = 2.0
     min_parallax_deg: float = 0.5
     min_common_points: int = 8
-    max_link_spread: float = 0.15
+    max_link_spread: float = 0.05
+    unlinked_confidence_factor: float = 0.5
     sweep_scale: float = 0.5
     sweep_planes: int = 64
     sweep_candidates: int = 5
@@ -61,7 +82,7 @@ class ClassicalConfig:
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
     min_ncc: float = 0.4
     full_confidence_margin: float = 0.15
-    min_texture_std: float = 2.0
+    min_texture_std: float = 0.5
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:
@@ -178,7 +199,7 @@ def triangulate_query_depth(
 
 
 def link_scales(
-    pairs: list[PairGeometry | None], min_common: int, max_spread: float = 0.15
+    pairs: list[PairGeometry | None], min_common: int, max_spread: float = 0.05
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Relative scale per pair so that shared query keypoints get equal depths; (k,), linked mask.
 
@@ -360,7 +381,9 @@ class ClassicalBackbone(Backbone):
             if pair is None:
                 continue
             T_iq[i] = make_pose(pair.R, pair.t * (scales[i] if linked[i] else fallback))
-            confidence[i] = pair.confidence
+            # Depths that disagree with the linked pairs hint at a wrong pose: trust the pair less.
+            penalty = 1.0 if linked[i] or linked.sum() < 2 else self.config.unlinked_confidence_factor
+            confidence[i] = pair.confidence * penalty
         T_qi = invert_pose(T_iq)
 
         t0 = time.perf_counter()
