@@ -11,12 +11,12 @@ import argparse
 import time
 
 import numpy as np
-from vgpnav_env.scenes import load_scene
-from vgpnav_env.scenes.model import build_model
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose
 from vgpnav_env.groundtruth import ground_truth_map
 from vgpnav_env.render import MujocoRenderer, PyrenderRenderer
+from vgpnav_env.scenes import load_scene
+from vgpnav_env.scenes.model import build_model
 
 
 def poses(gt, n: int, seed: int = 0) -> list[np.ndarray]:

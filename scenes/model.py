@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+
 from vgpnav_env.scenes.lighting import LIGHTING_PRESETS, LightingPreset
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 

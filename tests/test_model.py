@@ -7,6 +7,7 @@ import dataclasses
 import mujoco
 import numpy as np
 import pytest
+
 from vgpnav_env.scenes.model import (
     COLLISION_GROUP,
     RENDER_CAMERA,

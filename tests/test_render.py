@@ -8,10 +8,10 @@ import pytest
 from conftest import MARKER, ROOM_X, ROOM_Y
 from matplotlib.path import Path
 from scipy.spatial import ConvexHull
-from vgpnav_env.scenes.model import COLLISION_GROUP, build_mjspec
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose
 from vgpnav_env.render import BACKENDS, Frame, MujocoRenderer, PyrenderRenderer, make_renderer
+from vgpnav_env.scenes.model import COLLISION_GROUP, build_mjspec
 
 CAM = PinholeCamera(160, 120, np.radians(60.0))
 CAM_MID = PinholeCamera(320, 240, np.radians(60.0))

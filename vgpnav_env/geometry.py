@@ -125,7 +125,9 @@ class PinholeCamera:
     @property
     def K(self) -> NDArray[np.float64]:
         f = self.focal
-        return np.array([[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]])
+        return np.array(
+            [[f, 0.0, (self.width - 1) / 2.0], [0.0, f, (self.height - 1) / 2.0], [0.0, 0.0, 1.0]]
+        )
 
     @property
     def fovx(self) -> float:
@@ -145,7 +147,9 @@ class PinholeCamera:
         uv = uv * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
         return uv, z
 
-    def project_world(self, T_wc: ArrayLike, points_w: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def project_world(
+        self, T_wc: ArrayLike, points_w: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Pixels and z-depths of world points seen from a camera at ``T_wc``."""
         return self.project(transform_points(invert_pose(T_wc), points_w))
 
