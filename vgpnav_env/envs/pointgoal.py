@@ -183,6 +183,11 @@ class PointGoalEnv(gym.Env):
         self.camera_pitch = float(np.radians(camera_pitch_deg))
         self.robot_radius = float(robot_radius)
         self.render_rgb = bool(render_rgb)
+        #: The scene source name (None for a ``Scene`` object), texture and layout, e.g. for wrappers
+        #: that build the scene's database.
+        self.scene_source = scene if isinstance(scene, str) else None
+        self.texture = texture
+        self.layout = layout
 
         self.world = _world(
             scene, layout, texture, lighting, (width, height), robot_radius, robot_height, map_resolution

@@ -1,0 +1,84 @@
+"""VGPNavObservation: spaces, checkers, pose/goal/map consistency with the privileged backbone."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from vgpnav_env.perception.database import DatabaseConfig
+from vgpnav_env.wrappers import VGPNavObservation, open_database
+
+ENV_ID = "VGPNav/PointGoal-v0"
+
+
+@pytest.fixture(scope="module")
+def database(home_build):
+    # No prior map: the wrapper's own behaviour does not depend on it and building it is slow.
+    return open_database(home_build, DatabaseConfig(prior="none"))
+
+
+@pytest.fixture(scope="module")
+def wrapped(database):
+    env = VGPNavObservation(
+        gym.make(ENV_ID, scene="home", image_size=(160, 120)), "simulated", database=database
+    )
+    yield env
+    env.close()
+
+
+def test_wrapped_env_passes_gymnasium_and_sb3_checkers(wrapped):
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    gym_check(wrapped, skip_close_check=True)
+    sb3_check(wrapped, warn=False)
+
+
+def test_privileged_perception_gives_true_pose_goal_and_map(wrapped):
+    obs, info = wrapped.reset(seed=2)
+    assert wrapped.observation_space.contains(obs)
+    assert obs["localized"] == 1 and info["perception"]["status"] == "localized"
+    assert wrapped.last_result.localized and set(wrapped.last_result.timings) >= {"retrieval", "total"}
+    true = info["pose"]
+    np.testing.assert_allclose(obs["pose"][:2], true[:2], atol=0.05)
+    assert abs(np.angle(np.exp(1j * (obs["pose"][2] - true[2])))) < np.radians(2)
+    assert info["localization_error_m"] < 0.05
+    d = info["goal"] - true[:2]
+    assert obs["goal_rel"][0] == pytest.approx(np.hypot(*d), abs=0.05)
+    bearing = np.arctan2(d[1], d[0]) - true[2]
+    assert abs(np.angle(np.exp(1j * (obs["goal_rel"][1] - bearing)))) < np.radians(2)
+    assert obs["map"].shape == (1, 64, 64) and obs["map"].dtype == np.uint8
+    assert (obs["map"] > 0).mean() > 0.02  # the first views fused something (free or occupied)
+    assert info["obstacles"].shape == info["map_spec"].shape
+    for _ in range(3):
+        obs, _, _, _, info = wrapped.step(1)
+        assert wrapped.observation_space.contains(obs)
+    assert info["localization_error_m"] < 0.05
+
+
+def test_same_seed_same_wrapped_observations(wrapped):
+    a, _ = wrapped.reset(seed=4)
+    a1 = wrapped.step(2)[0]
+    b, _ = wrapped.reset(seed=4)
+    b1 = wrapped.step(2)[0]
+    for key in ("pose", "goal_rel", "map"):
+        np.testing.assert_array_equal(a[key], b[key])
+        np.testing.assert_array_equal(a1[key], b1[key])
+
+
+def test_perception_astar_reaches_goal_with_privileged_backbone(wrapped):
+    from vgpnav_env.eval.navigation import PerceptionAStar, run_episode
+
+    record = run_episode(wrapped, PerceptionAStar(wrapped), seed=0)
+    assert record.success, record.failure
+    assert record.localization_error_m < 0.05 and record.lost_fraction == 0.0
+
+
+def test_wrapper_rejects_bad_setups(database):
+    with pytest.raises(ValueError, match="render_rgb"):
+        VGPNavObservation(
+            gym.make(ENV_ID, scene="home", image_size=(160, 120), render_rgb=False), database=database
+        )
+    with pytest.raises(ValueError, match="160x120"):
+        VGPNavObservation(gym.make(ENV_ID, scene="home", image_size=(64, 48)), "simulated", database=database)

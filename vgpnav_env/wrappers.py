@@ -1,0 +1,262 @@
+"""``VGPNavObservation``: the point-goal env seen through VGP-Nav perception.
+
+The wrapper runs the VGP-Nav :class:`~vgpnav_env.perception.pipeline.Perceiver` on every camera
+image against the scene's database run and replaces the raw observation by a navigation state:
+
+``Dict(pose=Box (3,) float32, goal_rel=Box (2,) float32, map=Box uint8 (1, S, S), localized=Discrete(2))``
+
+- ``pose``: estimated (x, y, yaw) of the robot in W (metres, radians), clipped to the map bounds
+  plus a margin. While perception is lost the last estimate is carried forward by the commanded
+  discrete motion (nominal odometry: ``forward_step`` ahead, ``turn_step`` turns).
+- ``goal_rel``: (distance m, bearing rad counter-clockwise from the estimated heading) of the goal.
+- ``map``: egocentric crop of the fused occupancy map (``S`` x ``S`` pixels of ``map_resolution``
+  metres, row 0 ahead, columns to the right; 255 occupied, 128 free, 0 unknown), channels first.
+- ``localized``: 1 if this frame's pose came from perception, 0 if it was carried forward.
+
+``info`` keeps the env's entries (true pose etc., for evaluation) and adds ``perception`` (the
+frame's status, reason, ``T_wc``, scale, scale source, anchored ground height, references and
+confident pairs), ``estimated_pose``, ``obstacles`` (bool grid of occupied cells of the fused map)
+with ``map_spec`` (its ``GridSpec``), and ``localization_error_m``. The full
+:class:`PerceptionResult` of the last frame (points, timings, the live fused ``LogOddsMap``) is
+``wrapper.last_result``; it stays out of ``info`` so that ``info`` is comparable between runs
+(timings differ).
+
+On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
+rendered with tiny yaw offsets initialise the ground anchor (paper: ground height initialisation
+with the known camera height). The wrapper also sets the env's render overlay (estimated pose
+and fused obstacles).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
+from vgpnav_env.perception.backbones.base import Backbone, Privileged
+from vgpnav_env.perception.database import Database, DatabaseConfig
+from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
+
+logger = logging.getLogger(__name__)
+
+#: Databases opened in this process, by (directory, config): opening fits/loads the index and prior.
+_DATABASES: dict[tuple[str, str], Database] = {}
+POSE_MARGIN_M = 5.0
+
+
+def open_database(path: str | Path, config: DatabaseConfig | None = None) -> Database:
+    """``Database.open`` cached in-process (one copy per directory and config)."""
+    path = Path(path).resolve()
+    if (path / "summary.json").is_file() and (path / "database").is_dir():
+        path = path / "database"  # a build directory: its database run
+    key = (str(path), repr(config))
+    if key not in _DATABASES:
+        _DATABASES[key] = Database.open(path, config=config)
+    return _DATABASES[key]
+
+
+def scene_database_dir(env: gym.Env, seed: int = 0, progress: bool = False) -> Path:
+    """The default build directory of ``env``'s scene at its camera size, built if missing."""
+    from vgpnav_env.build import build_runs, default_build_dir
+
+    base = env.unwrapped
+    if base.scene_source is None:
+        raise ValueError("the env was made from a Scene object: pass database_dir= (a build of that scene)")
+    size = (base.camera.width, base.camera.height)
+    out = default_build_dir(base.scene_source, size, seed, base.texture)
+    build_runs(
+        base.scene_source,
+        out,
+        size=size,
+        seed=seed,
+        texture=base.texture,
+        fovy_deg=float(np.degrees(base.camera.fovy)),
+        progress=progress,
+    )
+    return out
+
+
+class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """VGP-Nav state observations (see the module docstring) over ``VGPNav/PointGoal-v0``."""
+
+    def __init__(
+        self,
+        env: gym.Env,
+        backbone: str | Backbone = "classical",
+        database_dir: str | Path | None = None,
+        *,
+        database: Database | None = None,
+        database_config: DatabaseConfig | None = None,
+        perception_config: PerceptionConfig | None = None,
+        map_size: int = 64,
+        map_resolution: float = 0.1,
+        init_yaw_jitter_deg: tuple[float, ...] = (0.0, -1.5, 1.5),
+        build_seed: int = 0,
+    ) -> None:
+        # Recorded for env re-creation from the spec; an open database is recorded by its directory.
+        gym.utils.RecordConstructorArgs.__init__(
+            self,
+            backbone=backbone,
+            database_dir=database.path if database is not None else database_dir,
+            database_config=database.config if database is not None else database_config,
+            perception_config=perception_config,
+            map_size=map_size,
+            map_resolution=map_resolution,
+            init_yaw_jitter_deg=init_yaw_jitter_deg,
+            build_seed=build_seed,
+        )
+        gym.Wrapper.__init__(self, env)
+        base = env.unwrapped
+        if not hasattr(base, "camera_T_wc"):
+            raise TypeError(f"VGPNavObservation wraps VGPNav/PointGoal-v0, got {type(base).__name__}")
+        if map_size < 8 or map_resolution <= 0:
+            raise ValueError(
+                f"need map_size >= 8 cells and map_resolution > 0, got {map_size}, {map_resolution}"
+            )
+        if not base.render_rgb:
+            raise ValueError("VGPNavObservation needs camera images: make the env with render_rgb=True")
+        if not init_yaw_jitter_deg:
+            raise ValueError("init_yaw_jitter_deg needs at least one yaw offset (0 = the first view)")
+        if database is None:
+            if database_dir is None:
+                database_dir = scene_database_dir(env, build_seed)
+            database = open_database(database_dir, database_config)
+        config = perception_config or PerceptionConfig(camera_height=base.camera_height)
+        self.perceiver = Perceiver(database, backbone, camera=base.camera, config=config)
+        self.map_size = int(map_size)
+        self.map_resolution = float(map_resolution)
+        self.init_yaw_jitter = np.radians(np.asarray(init_yaw_jitter_deg, float))
+
+        goal_space = base.observation_space["goal"]
+        lo = np.append(goal_space.low - POSE_MARGIN_M, -np.pi).astype(np.float32)
+        hi = np.append(goal_space.high + POSE_MARGIN_M, np.pi).astype(np.float32)
+        self._pose_low, self._pose_high = lo, hi
+        max_dist = float(np.linalg.norm(hi[:2] - lo[:2]))
+        self.observation_space = spaces.Dict(
+            {
+                "pose": spaces.Box(lo, hi, (3,), np.float32),
+                "goal_rel": spaces.Box(
+                    np.array([0.0, -np.pi], np.float32),
+                    np.array([max_dist, np.pi], np.float32),
+                    (2,),
+                    np.float32,
+                ),
+                "map": spaces.Box(0, 255, (1, self.map_size, self.map_size), np.uint8),
+                "localized": spaces.Discrete(2),
+            }
+        )
+        self.estimate: NDArray[np.float64] = np.zeros(3)
+        self.last_result: PerceptionResult | None = None
+
+    @property
+    def backbone_privileged(self) -> bool:
+        return bool(getattr(self.perceiver.backbone, "privileged", False))
+
+    def _privileged(self, T_wc: NDArray[np.float64], depth: NDArray[np.float32] | None) -> Privileged | None:
+        if not self.backbone_privileged:
+            return None
+        if depth is None:
+            raise ValueError(
+                "the simulated backbone needs the env's depth: make the env with render_rgb=True"
+            )
+        return Privileged(T_wq=T_wc, T_wi=np.zeros((0, 4, 4)), query_depth=depth)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        base = self.env.unwrapped
+        if hasattr(self.perceiver.backbone, "rng"):
+            self.perceiver.backbone.rng = np.random.default_rng(int(base.np_random.integers(2**63)))
+        self.perceiver.reset()
+        pose = np.asarray(info["pose"], float)
+        images, privileged = [obs["rgb"]], [self._privileged(info["T_wc"], info["depth"])]
+        renderer = base._renderer
+        for dyaw in self.init_yaw_jitter[1:]:
+            T_wc = base.camera_T_wc(pose + np.array([0.0, 0.0, dyaw]))
+            frame = renderer.render(T_wc)
+            images.append(frame.rgb)
+            privileged.append(self._privileged(T_wc, frame.depth))
+        result = self.perceiver.initialize(images, privileged)[0]
+        self.estimate = np.zeros(3)
+        self._have_estimate = False
+        return self._observe(obs, info, result, None)
+
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        result = self.perceiver.perceive(obs["rgb"], self._privileged(info["T_wc"], info["depth"]))
+        new_obs, info = self._observe(obs, info, result, action)
+        return new_obs, reward, terminated, truncated, info
+
+    def _dead_reckon(self, action: Any) -> None:
+        base = self.env.unwrapped
+        if action is None or base.action_mode != "discrete":
+            return
+        a = int(action)
+        x, y, yaw = self.estimate
+        if a == 1:
+            self.estimate = np.array(
+                [x + base.forward_step * np.cos(yaw), y + base.forward_step * np.sin(yaw), yaw]
+            )
+        elif a in (2, 3):
+            self.estimate = np.array(
+                [x, y, float(wrap_angle(yaw + (base.turn_step if a == 2 else -base.turn_step)))]
+            )
+
+    def _observe(
+        self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult, action: Any
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        localized = result.localized and result.T_wc is not None
+        if localized:
+            yaw, _ = camera_yaw_pitch(result.T_wc)
+            self.estimate = np.array([result.T_wc[0, 3], result.T_wc[1, 3], yaw])
+            self._have_estimate = True
+        elif self._have_estimate:
+            self._dead_reckon(action)
+        else:  # never localized in this episode: nothing better than the map centre
+            spec = result.occupancy.spec
+            centre = np.asarray(spec.origin) + 0.5 * np.asarray(spec.shape[::-1]) * spec.resolution
+            self.estimate = np.array([centre[0], centre[1], 0.0])
+        self.estimate = np.clip(self.estimate, self._pose_low, self._pose_high)
+        self.last_result = result
+        x, y, yaw = self.estimate
+        goal = np.asarray(obs["goal"], float)
+        d = goal - self.estimate[:2]
+        occupancy = result.occupancy
+        crop = occupancy.egocentric_crop(x, y, yaw, self.map_size, self.map_resolution)
+        max_dist = float(self.observation_space["goal_rel"].high[0])
+        new_obs = {
+            "pose": self.estimate.astype(np.float32),
+            "goal_rel": np.array(
+                [min(np.hypot(*d), max_dist), wrap_angle(np.arctan2(d[1], d[0]) - yaw)], np.float32
+            ),
+            "map": crop[None],
+            "localized": int(localized),
+        }
+        obstacles = occupancy.occupied()
+        info = dict(info)
+        info.update(
+            perception={
+                "status": result.status,
+                "reason": result.reason,
+                "T_wc": result.T_wc,
+                "scale": result.scale,
+                "scale_source": result.scale_source,
+                "z_ground": result.z_ground,
+                "references": result.references,
+                "n_confident_pairs": result.n_confident_pairs,
+            },
+            estimated_pose=self.estimate.copy(),
+            localized=localized,
+            obstacles=obstacles,
+            map_spec=occupancy.spec,
+            localization_error_m=float(np.linalg.norm(self.estimate[:2] - np.asarray(info["pose"])[:2])),
+        )
+        self.env.unwrapped.set_overlay(
+            estimated_pose=self.estimate, obstacles=occupancy.spec.cell_to_world(np.argwhere(obstacles))
+        )
+        return new_obs, info
