@@ -8,7 +8,7 @@ from backbone_synthetic import corner_views, render
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, FeatureCache, make_backbone
-from vgpnav_env.perception.backbones.classical import link_scales, match_descriptors
+from vgpnav_env.perception.backbones.classical import best_mean, link_scales, match_descriptors
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 K_REFS = 5
@@ -134,3 +134,17 @@ def test_matching_and_scale_linking_units():
     pairs[2] = Pair(np.arange(20), depth[:20] * np.geomspace(0.2, 5.0, 20), 50)
     scales, linked = link_scales(pairs, min_common=8, max_spread=0.15)
     np.testing.assert_array_equal(linked, [True, True, False, False])
+
+
+def test_best_mean_matches_a_sorted_reference():
+    rng = np.random.default_rng(0)
+    values = rng.random((4, 5, 6)).astype(np.float32)
+    values[rng.random(values.shape) < 0.4] = np.nan
+    for keep in (1, 2, 3, 4, 5):
+        expected = np.full(values.shape[1:], np.nan, np.float32)
+        for idx in np.ndindex(values.shape[1:]):
+            column = values[(slice(None), *idx)]
+            top = np.sort(column[np.isfinite(column)])[::-1][:keep]
+            if len(top):
+                expected[idx] = top.mean()
+        np.testing.assert_allclose(best_mean(values, keep), expected, rtol=1e-6)

@@ -198,6 +198,27 @@ def triangulate_query_depth(
     return depth, parallax, valid
 
 
+def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
+    """Per pixel, the mean of the ``keep`` largest finite values along axis 0 (NaN if none).
+
+    Occlusion-robust aggregation of per-reference NCC: a reference that sees an occluder at a
+    pixel is dropped as long as ``keep`` others see it.
+    """
+    seen = np.isfinite(values)
+    count = seen.sum(axis=0)
+    total = np.where(seen, values, 0.0).sum(axis=0)
+    n = len(values)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if keep >= n:
+            return (total / count).astype(np.float32)
+        if keep == n - 1:
+            lowest = np.where(seen, values, np.inf).min(axis=0)
+            return np.where(count == n, (total - lowest) / keep, total / count).astype(np.float32)
+        top = -np.sort(-np.where(seen, values, -np.inf), axis=0)[:keep]
+        top_seen = np.isfinite(top)
+        return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
+
+
 def link_scales(
     pairs: list[PairGeometry | None], min_common: int, max_spread: float = 0.05
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
@@ -471,13 +492,7 @@ class ClassicalBackbone(Backbone):
                 var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
                 cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
                 ncc[r] = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
-            # Occlusion-robust: mean of the best `keep` references that see the pixel (NaN: none).
-            top = -np.sort(-np.where(np.isfinite(ncc), ncc, -np.inf), axis=0)[:keep]
-            seen = np.isfinite(top)
-            with np.errstate(invalid="ignore"):
-                scores[p] = np.where(
-                    seen.any(axis=0), np.where(seen, top, 0.0).sum(axis=0) / seen.sum(axis=0), np.nan
-                )
+            scores[p] = best_mean(ncc, keep)
 
         visible = np.isfinite(scores).any(axis=0)
         filled = np.where(np.isfinite(scores), scores, -1.0)
