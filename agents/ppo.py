@@ -28,15 +28,20 @@ from vgpnav_env.cli import seed_arg
 logger = logging.getLogger(__name__)
 
 ENV_ID = "VGPNav/PointGoal-v0"
-#: Small images keep RL steps cheap; the CNN needs at least ~36 px per side.
+#: Small images keep RL steps cheap; the CNN needs at least ~36 px per side. With a perception
+#: backbone the policy sees no image, but perception needs ``PERCEPTION_IMAGE_SIZE``.
 DEFAULT_ENV_KWARGS: dict[str, Any] = {"image_size": (64, 48), "layout": "changed"}
+PERCEPTION_IMAGE_SIZE = (160, 120)
 DEFAULT_PPO_KWARGS: dict[str, Any] = {"n_steps": 128, "batch_size": 64, "n_epochs": 4, "learning_rate": 3e-4}
 CONFIG_FILE = "config.json"
 MODEL_FILE = "model.zip"
 
 
-def make_env(scene: str, backbone: str | None = None, **env_kwargs: Any) -> gym.Env:
-    """One training env: ``VGPNav/PointGoal-v0`` on ``scene``, wrapped for ``backbone`` if given.
+def make_env(
+    scene: str, backbone: str | None = None, database_dir: str | None = None, **env_kwargs: Any
+) -> gym.Env:
+    """One training env: ``VGPNav/PointGoal-v0`` on ``scene``, wrapped for ``backbone`` if given
+    (with the database build at ``database_dir``, default: the scene's cached build).
 
     Module-level so that sub-process vector envs can pickle it by reference.
     """
@@ -44,11 +49,18 @@ def make_env(scene: str, backbone: str | None = None, **env_kwargs: Any) -> gym.
     if backbone:
         from vgpnav_env.eval.navigation import perception_wrapper
 
-        env = perception_wrapper(backbone)(env)
+        env = perception_wrapper(backbone, database_dir=database_dir)(env)
     return env
 
 
-def make_vec(scene: str, n_envs: int, seed: int, backbone: str | None, env_kwargs: dict[str, Any]):
+def make_vec(
+    scene: str,
+    n_envs: int,
+    seed: int,
+    backbone: str | None,
+    env_kwargs: dict[str, Any],
+    database_dir: str | None = None,
+):
     """Vectorised, monitored envs (``SubprocVecEnv`` for more than one env, else ``DummyVecEnv``)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
@@ -59,7 +71,7 @@ def make_vec(scene: str, n_envs: int, seed: int, backbone: str | None, env_kwarg
         make_env,
         n_envs=n_envs,
         seed=seed,
-        env_kwargs={"scene": scene, "backbone": backbone, **env_kwargs},
+        env_kwargs={"scene": scene, "backbone": backbone, "database_dir": database_dir, **env_kwargs},
         vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
     )
 
@@ -109,6 +121,7 @@ def train_ppo(
     env_kwargs: dict[str, Any] | None = None,
     ppo_kwargs: dict[str, Any] | None = None,
     checkpoint_every: int = 10_000,
+    database_dir: str | Path | None = None,
 ) -> Path:
     """Train (or resume) PPO for ``steps`` total env steps; returns the final model path."""
     from stable_baselines3 import PPO
@@ -118,15 +131,22 @@ def train_ppo(
         raise ValueError(f"steps must be positive, got {steps}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    env_kwargs = {**DEFAULT_ENV_KWARGS, **(env_kwargs or {})}
+    defaults = {**DEFAULT_ENV_KWARGS, "image_size": PERCEPTION_IMAGE_SIZE} if backbone else DEFAULT_ENV_KWARGS
+    env_kwargs = {**defaults, **(env_kwargs or {})}
     env_kwargs["image_size"] = list(env_kwargs["image_size"])
-    config = {"scene": scene, "backbone": backbone, "env_kwargs": env_kwargs, "seed": seed}
+    config = {
+        "scene": scene,
+        "backbone": backbone,
+        "database_dir": str(database_dir) if database_dir is not None else None,
+        "env_kwargs": env_kwargs,
+        "seed": seed,
+    }
     if resume and (out / CONFIG_FILE).is_file():
         config = json.loads((out / CONFIG_FILE).read_text())
     else:
         (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
     kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
-    venv = make_vec(config["scene"], n_envs, seed, config["backbone"], kwargs)
+    venv = make_vec(config["scene"], n_envs, seed, config["backbone"], kwargs, config.get("database_dir"))
     ckpt = latest_checkpoint(out) if resume else None
     try:
         if ckpt is not None:
@@ -181,6 +201,7 @@ def evaluate_policy(
         size=tuple(config["env_kwargs"]["image_size"]),
         out_dir=out_dir,
         progress=progress,
+        database_dir=config.get("database_dir"),
     )
 
 
@@ -192,6 +213,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--backbone", choices=["classical", "simulated"], default=None)
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
+    parser.add_argument(
+        "--database",
+        type=Path,
+        default=None,
+        help="build directory of the scene (default: cache, built if missing)",
+    )
     parser.add_argument("--seed", type=seed_arg, default=0)
     parser.add_argument("--checkpoint-every", type=int, default=10_000, help="env steps between checkpoints")
 
@@ -207,5 +234,6 @@ def run(args: argparse.Namespace) -> int:
         resume=args.resume,
         seed=args.seed,
         checkpoint_every=args.checkpoint_every,
+        database_dir=args.database,
     )
     return 0

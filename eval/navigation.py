@@ -83,33 +83,29 @@ class SB3Policy:
         return int(action) if np.ndim(action) == 0 else action
 
 
-def perception_wrapper(backbone: str) -> Callable[[gym.Env], gym.Env]:
-    """``env -> VGPNavObservation(env, backbone=backbone)``; clear error if the wrapper is missing."""
-    try:
-        from vgpnav_env.wrappers import VGPNavObservation
-    except ImportError as e:
-        raise RuntimeError(
-            "agents that use perception need vgpnav_env.wrappers.VGPNavObservation, which is not "
-            f"available ({e}); use --agent oracle"
-        ) from e
-    return lambda env: VGPNavObservation(env, backbone=backbone)
+def perception_wrapper(backbone: str, **wrapper_kwargs: Any) -> Callable[[gym.Env], gym.Env]:
+    """``env -> VGPNavObservation(env, backbone=backbone, **wrapper_kwargs)``."""
+    from vgpnav_env.wrappers import VGPNavObservation
+
+    return lambda env: VGPNavObservation(env, backbone=backbone, **wrapper_kwargs)
 
 
 def make_agent(
-    agent: str, backbone: str
+    agent: str, backbone: str, wrapper_kwargs: dict[str, Any] | None = None
 ) -> tuple[Callable[[gym.Env], Policy], Callable[[gym.Env], gym.Env] | None, dict[str, Any]]:
     """(policy factory over the env, observation wrapper or None, env keyword arguments the agent
-    needs) for an ``--agent`` string."""
+    needs) for an ``--agent`` string; ``wrapper_kwargs`` go to ``VGPNavObservation``."""
+    wrapper_kwargs = wrapper_kwargs or {}
     if agent == "oracle":
         return OracleAgent, None, {"render_rgb": False}
     if agent == "astar":
-        return PerceptionAStar, perception_wrapper(backbone), {}
+        return PerceptionAStar, perception_wrapper(backbone, **wrapper_kwargs), {}
     if agent.startswith("ppo:"):
         from vgpnav_env.agents.ppo import load_config, model_path
 
         path = model_path(agent[4:])
         config = load_config(path)
-        wrapper = perception_wrapper(config["backbone"]) if config.get("backbone") else None
+        wrapper = perception_wrapper(config["backbone"], **wrapper_kwargs) if config.get("backbone") else None
         env_kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
         return (lambda env: SB3Policy(path)), wrapper, env_kwargs
     raise ValueError(f"unknown agent {agent!r}; allowed: astar, oracle, ppo:PATH")
@@ -250,11 +246,21 @@ def evaluate_navigation(
     out_dir: str | Path | None = None,
     env_kwargs: dict[str, Any] | None = None,
     progress: bool = True,
+    database_dir: str | Path | None = None,
+    wrapper_kwargs: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Run the protocol; returns the report dict (also written to ``out_dir`` if given)."""
+    """Run the protocol; returns the report dict (also written to ``out_dir`` if given).
+
+    Perception agents use the database build at ``database_dir`` (default: the scene's build at
+    the env's image size in the vgpnav cache, built if missing); ``wrapper_kwargs`` go to
+    ``VGPNavObservation``.
+    """
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
-    make_policy, wrapper, agent_env_kwargs = make_agent(agent, backbone)
+    wrapper_kwargs = dict(wrapper_kwargs or {})
+    if database_dir is not None:
+        wrapper_kwargs["database_dir"] = database_dir
+    make_policy, wrapper, agent_env_kwargs = make_agent(agent, backbone, wrapper_kwargs)
     kwargs = {"scene": scene, "layout": "changed", "image_size": tuple(size), **agent_env_kwargs}
     kwargs.update(env_kwargs or {})
     env = gym.make(ENV_ID, **kwargs)
@@ -333,12 +339,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="report directory")
     parser.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i")
     parser.add_argument("--size", type=size_arg, default=(320, 240), help="camera image WxH")
+    parser.add_argument(
+        "--database",
+        type=Path,
+        default=None,
+        help="build directory (vgpnav build) of the scene at --size; default: the cache, built if missing",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav eval navigation``; returns the process exit code."""
     report = evaluate_navigation(
-        args.scene, args.agent, args.backbone, args.episodes, args.seed, args.size, out_dir=args.out
+        args.scene,
+        args.agent,
+        args.backbone,
+        args.episodes,
+        args.seed,
+        args.size,
+        out_dir=args.out,
+        database_dir=args.database,
     )
     logger.info(
         "navigation %s %s: SR %.2f, SPL %.2f over %d episodes -> %s",

@@ -100,3 +100,24 @@ def test_summary_aggregates_and_counts_failures():
     assert s["mean_localization_error_m"] == pytest.approx(0.2)
     assert s["failures"] == {"timeout": 1, "stopped-too-far": 0, "lost": 1}
     assert s["collisions_per_episode"] == 1.0 and np.isfinite(s["soft_spl"])
+
+
+def test_astar_with_privileged_perception_reports_localization(home_build, tmp_path):
+    from vgpnav_env.perception.database import DatabaseConfig
+
+    report = evaluate_navigation(
+        "home",
+        agent="astar",
+        backbone="simulated",
+        episodes=1,
+        seed=7,
+        size=(160, 120),
+        out_dir=tmp_path / "astar",
+        progress=False,
+        database_dir=home_build,
+        wrapper_kwargs={"database_config": DatabaseConfig(prior="none")},
+    )
+    assert report["backbone"] == "simulated" and report["episodes"] == 1
+    assert report["mean_localization_error_m"] < 0.05  # noise-free privileged backbone
+    assert report["records"][0]["estimated_trajectory"] is not None
+    assert report["success_rate"] == 1.0
