@@ -5,7 +5,11 @@
 Without ``--build`` the inputs are synthetic (textured noise images, random poses, a ray-cast
 floor). With ``--build`` (a directory written by ``vgpnav_env.build.build_runs``) the VLAD
 index is fitted on the database run and every query image is retrieved; retrieval quality
-is reported as the fraction of queries whose best match lies within 1.5 m and 45 deg.
+is reported as the fraction of queries whose best match lies within 1.5 m and 45 deg, and
+the modules are chained on every third query with the PRIVILEGED simulated backbone (1 deg
+rotation, 2 deg direction, 2 % depth noise, 10 % outlier references) to compare the
+ablations: geometry-aware vs top-k retrieval, weighted vs single-reference motion
+averaging, ground from the query alone vs the whole reconstruction with a ray-scale prior.
 """
 
 from __future__ import annotations
@@ -17,12 +21,17 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
+from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, rotation_angle
 from vgpnav_env.grid import GridSpec
-from vgpnav_env.perception.motion_averaging import average_motion
+from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, average_motion
 from vgpnav_env.perception.occupancy import LogOddsMap
 from vgpnav_env.perception.retrieval import RetrievalConfig, VladIndex, select_references
-from vgpnav_env.perception.scale_recovery import ground_peak, recover_metric_points
+from vgpnav_env.perception.scale_recovery import (
+    GroundAnchor,
+    ground_peak,
+    reconstruction_points,
+    recover_metric_points,
+)
 
 
 def timed(fn: Callable[[], object], repeats: int) -> float:
@@ -82,6 +91,77 @@ def bench_retrieval(rng: np.random.Generator, repeats: int, build: str | None) -
         print(f"retrieval: best match within 1.5 m / 45 deg for {top1}/{len(q_images)} queries")
         for method, frac in near.items():
             print(f"retrieval: {method}: {100 * np.mean(frac):.0f}% of the selected references within 3 m")
+        chain_eval(build, index)
+
+
+def chain_eval(build: str, index: VladIndex) -> None:
+    """Retrieval -> simulated backbone -> motion averaging -> scale on a build's query run."""
+    from vgpnav_env.perception.backbones.base import Privileged
+    from vgpnav_env.perception.backbones.simulated import SimulatedBackbone, SimulatedConfig
+    from vgpnav_env.runs import load_build, load_run_depth
+
+    b = load_build(build)
+    db_depth = load_run_depth(b.path / "database")
+    q_depth = load_run_depth(b.path / "query")
+    cam = b.query.camera
+    noise = SimulatedConfig(
+        rotation_noise_deg=1.0, direction_noise_deg=2.0, depth_noise=0.02, outlier_fraction=0.1
+    )
+    rows: dict[str, list[tuple[float, float]]] = {}
+    scale_err: dict[str, list[float]] = {"query only": [], "reconstruction + prior": []}
+    for i in range(0, len(b.query), 3):
+        T_wq = b.query.poses[i]
+        sim = index.similarity(b.query.images[i])
+        for method in ("geometry", "topk"):
+            sel = select_references(sim, b.database.poses, RetrievalConfig(method=method))
+            backbone = SimulatedBackbone(noise, seed=i)
+            priv = Privileged(T_wq, b.database.poses[sel], q_depth[i], db_depth[sel])
+            out = backbone(b.query.images[i], list(b.database.images[sel]), cam, priv)
+            T_wi = b.database.poses[sel]
+            for mode in ("weighted", "single"):
+                res = average_motion(
+                    T_wi,
+                    out.T_qi,
+                    out.confidence,
+                    MotionAveragingConfig(method=mode),
+                    scale_valid=out.scale_valid,
+                )
+                t_err = np.linalg.norm(res.T_wq[:3, 3] - T_wq[:3, 3]) if res.ok else np.inf
+                r_err = np.rad2deg(rotation_angle(res.T_wq[:3, :3], T_wq[:3, :3])) if res.ok else np.inf
+                rows.setdefault(f"{method:8s} + {mode}", []).append((t_err, r_err))
+                if method == "geometry" and mode == "weighted" and res.ok:
+                    anchor = GroundAnchor()
+                    anchor.initialize([(T_wq, None)], float(T_wq[2, 3]))
+                    true_scale = 1.0 / backbone.last_scale
+                    P, w = reconstruction_points(cam, out.query_depth, out.query_depth_confidence)
+                    g = ground_peak(P, res.T_wq[:3, :3], w)
+                    scale_err["query only"].append(anchor.scale_for(res.T_wq, g).scale / true_scale - 1)
+                    P, w = reconstruction_points(
+                        cam,
+                        out.query_depth,
+                        out.query_depth_confidence,
+                        out.T_qi,
+                        out.reference_depths,
+                        out.confidence * out.scale_valid,
+                    )
+                    prior = anchor.expected_height_b(res.T_wq, res.scale_from_rays)
+                    g = ground_peak(P, res.T_wq[:3, :3], w, prior_height_b=prior)
+                    scale_err["reconstruction + prior"].append(
+                        anchor.scale_for(res.T_wq, g).scale / true_scale - 1
+                    )
+    n = len(rows["geometry + weighted"])
+    print(f"chain ({n} queries, simulated backbone): median position / rotation error")
+    for name, errs in rows.items():
+        e = np.array(errs)
+        t, r = np.median(e[:, 0]), np.median(e[:, 1])
+        print(f"  {name}: {t:.3f} m / {r:.2f} deg, failures {np.isinf(e[:, 0]).sum()}")
+    for name, errs in scale_err.items():
+        e = np.abs(np.array(errs))
+        ok = np.isfinite(e)
+        print(
+            f"  scale, {name}: found {ok.sum()}/{len(e)}, median |error| {100 * np.median(e[ok]):.2f} %, "
+            f"> 5 %: {(e[ok] > 0.05).sum()}"
+        )
 
 
 def bench_motion(rng: np.random.Generator, repeats: int) -> None:
@@ -108,8 +188,9 @@ def bench_scale_and_occupancy(rng: np.random.Generator, repeats: int) -> None:
     pts_b = cam.backproject(0.37 * depth * np.exp(rng.normal(0, 0.02, depth.shape)))
     g = ground_peak(pts_b, T_wc[:3, :3])
     ms = timed(lambda: ground_peak(pts_b, T_wc[:3, :3]), repeats)
+    scale = 1.2 / -g.height_b
     print(
-        f"scale: ground_peak ({cam.width}x{cam.height} points): {ms:.2f} ms, scale {1.2 / -g.height_b:.4f} (true 2.7027)"
+        f"scale: ground_peak ({cam.width}x{cam.height} points): {ms:.2f} ms, scale {scale:.4f} (true 2.7027)"
     )
     P_w = recover_metric_points(pts_b, T_wc, 1.2 / -g.height_b).reshape(-1, 3)
     P_w = P_w[rng.choice(len(P_w), 20000, replace=False)]
