@@ -27,6 +27,9 @@ from vgpnav_env.scenes.scene import Material
 
 TEXTURE_LEVELS: tuple[str, ...] = ("rich", "realistic", "sparse")
 
+#: Bumped whenever generated images change, so that builds made with older materials are not reused.
+MATERIALS_VERSION = 2
+
 _RGB = dict[str, tuple[int, int, int]]
 
 _PALETTES: dict[str, _RGB] = {
@@ -41,6 +44,13 @@ _PALETTES: dict[str, _RGB] = {
         "yellow": (236, 222, 172),
         "pink": (232, 208, 204),
         "terracotta": (196, 128, 100),
+    },
+    "wallpaper": {
+        "cream": (232, 222, 200),
+        "sage": (190, 204, 182),
+        "blue": (186, 200, 218),
+        "grey": (204, 202, 198),
+        "rose": (226, 204, 198),
     },
     "wood": {
         "oak": (172, 126, 80),
@@ -118,6 +128,7 @@ _PALETTES: dict[str, _RGB] = {
 
 _TILE_M: dict[str, float] = {
     "paint": 2.0,
+    "wallpaper": 0.53,
     "wood": 1.0,
     "parquet": 1.6,
     "tiles": 1.2,
@@ -182,6 +193,13 @@ def _tone(base: NDArray[np.float64], shade: NDArray[np.float64]) -> NDArray[np.f
     return base[None, None, :] * shade[..., None]
 
 
+def _flecks(rng: np.random.Generator, n: int, density: float, size: float) -> NDArray[np.float64]:
+    """Tileable signed flecks (dark and light dots of ``size`` pixels), peak magnitude ~1, zero elsewhere."""
+    dots = (rng.random((n, n)) < density) * rng.choice([-1.0, 1.0], (n, n))
+    blurred = cv2.GaussianBlur(np.tile(dots, (3, 3)), (0, 0), size)[n : 2 * n, n : 2 * n]
+    return blurred * (2 * np.pi * size**2)
+
+
 def _wood(rng: np.random.Generator, n: int, base: NDArray, contrast: float, rings: int = 12) -> NDArray:
     """Grain running along u: growth rings (sawtooth of a gently warped v) and fine fibres."""
     u, v = _grid(n)
@@ -191,29 +209,36 @@ def _wood(rng: np.random.Generator, n: int, base: NDArray, contrast: float, ring
     fibre = _noise(rng, n, n / 6, 0.7)
     if base.mean() > 0.8:
         contrast *= 0.25
-    shade = 1.0 - contrast * (0.16 * grain + 0.06 * fibre + 0.05 * _noise(rng, n, n / 3))
+    streaks = _noise(rng, n, n / 5, 2.0)
+    pores = np.abs(_flecks(rng, n, 0.004, 0.9)) + 1.2 * np.abs(_flecks(rng, n, 0.0004, n / 90))
+    shade = 1.0 - contrast * (
+        0.26 * grain + 0.08 * fibre + 0.08 * streaks + 0.05 * _noise(rng, n, n / 3) + 0.12 * pores
+    )
     return _tone(base, shade)
 
 
 def _parquet(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> NDArray:
-    rows, per_row = 8, 2
+    rows, per_row = 16, 3
     ph, pw = n // rows, n // per_row
     wood = _wood(rng, n, base, contrast, rings=30)
     out = np.empty_like(wood)
     for r in range(rows):
-        offset = (r * 3 % 4) * (pw // 4) if r % 2 else 0
+        offset = (r * 5 % 7) * (pw // 7)
         for k in range(per_row + 1):
             x0 = k * pw - offset
-            tone = 1.0 + contrast * rng.normal(0, 0.07)
+            tone = 1.0 + contrast * rng.normal(0, 0.12)
             sx, sy = rng.integers(0, n, 2)
             patch = wood[np.ix_((sy + np.arange(ph)) % n, (sx + np.arange(pw)) % n)] * tone
             out[r * ph : (r + 1) * ph, (x0 + np.arange(pw)) % n] = patch
     seam = np.ones((n, n))
-    seam[::ph, :] = 1 - 0.45 * min(contrast, 1.5)
+    dark = 1 - 0.5 * min(contrast, 1.5)
+    seam[(np.arange(n) % ph) < 2, :] = dark
+
     for r in range(rows):
-        offset = (r * 3 % 4) * (pw // 4) if r % 2 else 0
+        offset = (r * 5 % 7) * (pw // 7)
         for k in range(per_row + 1):
-            seam[r * ph : (r + 1) * ph, (k * pw - offset) % n] = 1 - 0.45 * min(contrast, 1.5)
+            x = (k * pw - offset) % n
+            seam[r * ph : (r + 1) * ph, [x, (x + 1) % n]] = dark
     return out * seam[..., None]
 
 
@@ -221,13 +246,14 @@ def _tiles(
     rng: np.random.Generator, n: int, base: NDArray, contrast: float, count: int, level: str
 ) -> NDArray:
     step = n // count
-    grout_w = max(2, n // 128)
+    grout_w = max(3, n // 80)
     img = np.ones((n, n, 3)) * base
     for r in range(count):
         for c in range(count):
-            tone = 1.0 + contrast * rng.normal(0, 0.025)
+            tone = 1.0 + contrast * rng.normal(0, 0.05)
             img[r * step : (r + 1) * step, c * step : (c + 1) * step] *= tone
-    img *= (1.0 + contrast * 0.012 * _noise(rng, n, 1.0))[..., None]
+    stone = 0.015 * _noise(rng, n, 1.0) + 0.012 * _noise(rng, n, 4.0) + 0.12 * _flecks(rng, n, 0.002, 3.0)
+    img *= (1.0 + contrast * stone)[..., None]
     if level == "rich":
         specks = (rng.random((n, n)) < 0.02).astype(float)
         specks = cv2.GaussianBlur(specks, (0, 0), 1.2) * 6
@@ -251,20 +277,60 @@ def _paint(rng: np.random.Generator, n: int, base: NDArray, level: str) -> NDArr
         motif = 0.12 * (motif > 0.6)
         shade = 1.0 + stripes - motif + 0.05 * _noise(rng, n, 1.5) + 0.04 * _noise(rng, n, 12)
         return _tone(base, shade)
-    amp = {"realistic": 1.0, "sparse": 0.25}[level]
-    shade = 1.0 + amp * (0.012 * _noise(rng, n, n / 8) + 0.008 * _noise(rng, n, 1.2))
+    # Faint roller mottling (blobs of a few centimetres) and plaster grain; still the hardest surface.
+    amp = {"realistic": 1.0, "sparse": 0.15}[level]
+    mottle = _noise(rng, n, 2.5)
+    shade = 1.0 + amp * (0.02 * mottle + 0.012 * _noise(rng, n, n / 8) + 0.003 * _noise(rng, n, 1.0))
+    return _tone(base, shade)
+
+
+def _wallpaper(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> NDArray:
+    """Printed wallpaper: pin stripes and a staggered small floral motif over paper grain."""
+    u, v = _grid(n)
+    stripes = (np.mod(8 * u, 1.0) < 0.06).astype(float)
+    img = np.zeros((n, n))
+    step = n // 4
+    for r in range(4):
+        for k in range(4):
+            cx = k * step + step // 2 + (step // 2 if r % 2 else 0)
+            cy = r * step + step // 2
+            for a in range(5):
+                ang = 2 * np.pi * a / 5 + (r % 2) * 0.6
+                p = (int(cx + 0.16 * step * np.cos(ang)) % n, int(cy + 0.16 * step * np.sin(ang)) % n)
+                for dx in (-n, 0, n):
+                    for dy in (-n, 0, n):
+                        cv2.circle(img, (p[0] + dx, p[1] + dy), step // 12, 1.0, -1)
+            for dx in (-n, 0, n):
+                cv2.circle(img, (cx % n + dx, cy), step // 16, -1.0, -1)
+    img = cv2.GaussianBlur(img, (0, 0), 1.0)
+    shade = 1.0 + contrast * (-0.12 * img - 0.06 * stripes + 0.01 * _noise(rng, n, 1.0))
     return _tone(base, shade)
 
 
 def _carpet(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> NDArray:
-    shade = 1.0 + contrast * (0.09 * _noise(rng, n, 0.8) + 0.05 * _noise(rng, n, n / 10))
+    u, v = _grid(n)
+    loops = np.sin(2 * np.pi * 24 * u) * np.sin(2 * np.pi * 24 * v)
+    shade = 1.0 + contrast * (
+        0.08 * _noise(rng, n, 0.8)
+        + 0.06 * _noise(rng, n, 2.5)
+        + 0.05 * _noise(rng, n, n / 10)
+        + 0.04 * loops
+        + 0.2 * _flecks(rng, n, 0.003, 3.0)
+    )
     return _tone(base, shade)
 
 
 def _fabric(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> NDArray:
     u, v = _grid(n)
     weave = np.sin(2 * np.pi * 32 * u) * np.sin(2 * np.pi * 32 * v)
-    shade = 1.0 + contrast * (0.05 * weave + 0.05 * _noise(rng, n, 1.0) + 0.04 * _noise(rng, n, n / 6))
+    slubs = _noise(rng, n, 6.0, 1.0) + _noise(rng, n, 1.0, 6.0)
+    shade = 1.0 + contrast * (
+        0.07 * weave
+        + 0.05 * _noise(rng, n, 1.0)
+        + 0.05 * slubs
+        + 0.04 * _noise(rng, n, n / 6)
+        + 0.15 * _flecks(rng, n, 0.003, 2.5)
+    )
     return _tone(base, shade)
 
 
@@ -295,8 +361,10 @@ def _brick(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> 
 
 def _speckled(rng: np.random.Generator, n: int, base: NDArray, contrast: float, density: float) -> NDArray:
     specks = (rng.random((n, n)) < density).astype(float)
-    specks = cv2.GaussianBlur(specks, (0, 0), 0.8) * 3
-    shade = 1.0 + contrast * (0.015 * _noise(rng, n, n / 10) + 0.02 * _noise(rng, n, 1.0) - 0.25 * specks)
+    specks = cv2.GaussianBlur(np.tile(specks, (3, 3)), (0, 0), 1.2)[n : 2 * n, n : 2 * n] * 5
+    shade = 1.0 + contrast * (
+        0.03 * _noise(rng, n, n / 10) + 0.02 * _noise(rng, n, 1.0) + 0.02 * _noise(rng, n, 4.0) - 0.3 * specks
+    )
     return _tone(base, shade)
 
 
@@ -427,7 +495,7 @@ def _books(rng: np.random.Generator, n: int, contrast: float) -> NDArray:
 
 _SIZE_512 = {"parquet", "brick"}
 
-_CONTRAST = {"rich": 2.2, "realistic": 1.0, "sparse": 0.2}
+_CONTRAST = {"rich": 2.4, "realistic": 1.6, "sparse": 0.2}
 
 
 def _image(kind: str, base: NDArray, level: str, rng: np.random.Generator) -> NDArray:
@@ -435,13 +503,14 @@ def _image(kind: str, base: NDArray, level: str, rng: np.random.Generator) -> ND
     c = _CONTRAST[level]
     gens: dict[str, Callable[[], NDArray]] = {
         "paint": lambda: _paint(rng, n, base, level),
+        "wallpaper": lambda: _wallpaper(rng, n, base, c),
         "wood": lambda: _wood(rng, n, base, c),
         "parquet": lambda: _parquet(rng, n, base, c),
-        "tiles": lambda: _tiles(rng, n, base, c, 4, level),
+        "tiles": lambda: _tiles(rng, n, base, c, 6, level),
         "smalltiles": lambda: _tiles(rng, n, base, c, 4, level),
         "carpet": lambda: _carpet(rng, n, base, c),
         "fabric": lambda: _fabric(rng, n, base, c),
-        "linoleum": lambda: _speckled(rng, n, base, c, 0.01),
+        "linoleum": lambda: _speckled(rng, n, base, c, 0.03),
         "concrete": lambda: _speckled(rng, n, base, 1.5 * c, 0.004),
         "brick": lambda: _brick(rng, n, base, c),
         "marble": lambda: _marble(rng, n, base, c),

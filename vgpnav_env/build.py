@@ -45,6 +45,8 @@ from vgpnav_env.runs import (
     write_run,
 )
 from vgpnav_env.scenes import load_scene, scene_slug
+from vgpnav_env.scenes.materials import MATERIALS_VERSION
+from vgpnav_env.scenes.registry import BUILTIN_DIR
 from vgpnav_env.scenes.scene import Scene
 from vgpnav_env.trajectories import (
     DATABASE_HEIGHT,
@@ -114,9 +116,13 @@ def default_build_dir(
 
 
 def _source_digest(source: str) -> str | None:
-    """SHA-256 of a spec file (so an edited spec invalidates its builds); None for built-ins."""
+    """SHA-256 of a spec file or a built-in's spec (so an edited spec invalidates its builds); else None."""
     path = Path(source)
-    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    if not path.is_file():
+        path = BUILTIN_DIR / f"{source.partition(':')[0]}.yaml"
+        if ":" in source or not path.is_file():
+            return None
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def build_parameters(
@@ -140,6 +146,7 @@ def build_parameters(
         "trajectory_version": TRAJECTORY_VERSION,
         "run_format_version": RUN_VERSION,
         "build_version": BUILD_VERSION,
+        "materials_version": MATERIALS_VERSION,
     }
 
 
