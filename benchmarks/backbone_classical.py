@@ -18,11 +18,11 @@ import time
 
 import numpy as np
 from numpy.typing import NDArray
-from vgpnav_env.scenes.scene import Scene
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig
 from vgpnav_env.render import MujocoRenderer
+from vgpnav_env.scenes.scene import Scene
 
 PITCH = np.deg2rad(20.0)
 
@@ -87,7 +87,7 @@ def measure(
     rng = np.random.default_rng(seed)
     renderer = MujocoRenderer(scene, camera)
     backbone = ClassicalBackbone(config)
-    rot, direction, passed = [], [], []
+    rot, direction, passed, pair_conf, pair_linked = [], [], [], [], []
     depth_baseline, depth_fit, confident_fraction = [], [], []
     t_cold, t_warm, stages = [], [], []
     for trial in range(trials):
@@ -109,6 +109,8 @@ def measure(
         for i in np.flatnonzero(ok):
             rot.append(np.degrees(rotation_angle(out.T_qi[i, :3, :3], T_qi[i, :3, :3])))
             direction.append(direction_error_deg(out.T_qi[i, :3, 3], T_qi[i, :3, 3]))
+            pair_conf.append(out.confidence[i])
+            pair_linked.append(out.scale_valid[i])
         linked = out.scale_valid
         confident = (out.query_depth_confidence > 0.5) & np.isfinite(depth_gt)
         confident_fraction.append(confident.mean())
@@ -120,6 +122,8 @@ def measure(
             depth_baseline.append(np.median(np.abs(est / np.median(ratios) - gt) / gt))
             depth_fit.append(np.median(np.abs(est * np.median(gt / est) - gt) / gt))
     renderer.close()
+    gross = (np.array(rot) > 5.0) | (np.array(direction) > 10.0)
+    pair_conf, pair_linked = np.array(pair_conf), np.array(pair_linked, bool)
     return {
         "scene": scene.key,
         "trials": trials,
@@ -129,6 +133,13 @@ def measure(
         "rotation_error_deg_p90": float(np.percentile(rot, 90)) if rot else None,
         "direction_error_deg_median": float(np.median(direction)) if direction else None,
         "direction_error_deg_p90": float(np.percentile(direction, 90)) if direction else None,
+        "gross_pair_fraction": float(gross.mean()) if rot else None,
+        "confidence_median_good_gross": [
+            float(np.median(pair_conf[m])) if m.any() else None for m in (~gross, gross)
+        ],
+        "linked_fraction_good_gross": [
+            float(pair_linked[m].mean()) if m.any() else None for m in (~gross, gross)
+        ],
         "depth_rel_error_median_baseline_scale": float(np.median(depth_baseline)) if depth_baseline else None,
         "depth_rel_error_median_fit_scale": float(np.median(depth_fit)) if depth_fit else None,
         "depth_confident_fraction": float(np.mean(confident_fraction)),

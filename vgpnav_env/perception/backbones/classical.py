@@ -12,7 +12,9 @@ agree up to one factor per pair), then the shared scale is fixed by
 Pairs outside the largest consistent group keep their rotation and translation direction but
 get ``scale_valid = False`` (and their confidence times ``unlinked_confidence_factor``).
 Pair confidence = min(1, inliers / full_confidence_inliers) * sqrt(inlier ratio) *
-clip(median parallax / full_confidence_parallax_deg, 0.1, 1).
+clip(median parallax / full_confidence_parallax_deg, 0.1, 1) * clip((1 - h) / planar_confidence_span,
+0.2, 1), where h = homography inliers / essential inliers: a dominant plane leaves the 5-point
+pose ambiguous (on rendered homes, gross pairs had h ~0.9 vs ~0.7 for good ones).
 
 A dense query depth comes from an NCC plane sweep over fronto-parallel inverse-depth planes at
 reduced resolution against the widest-baseline of the most confident linked references, with a
@@ -47,7 +49,8 @@ class ClassicalConfig:
     Features: ``max_keypoints`` SIFT keypoints with ``sift_contrast_threshold`` (low, because
     rendered interiors are low-contrast: at OpenCV's 0.04 a realistic room gives ~60 keypoints),
     optional CLAHE (``clahe_clip`` > 0). Matching: ``ratio`` test, ``mutual`` check. Two-view:
-    ``max_epipolar_error`` (px), RANSAC iteration bounds, ``min_inliers``. Scale linking: query
+    ``max_epipolar_error`` (px), RANSAC iteration bounds, ``min_inliers``; planarity test with
+    ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Plane sweep: image scale,
     number of planes, references (best ``sweep_references`` by baseline among the
@@ -68,6 +71,8 @@ class ClassicalConfig:
     min_inliers: int = 50
     full_confidence_inliers: int = 200
     full_confidence_parallax_deg: float = 2.0
+    homography_threshold: float = 2.0
+    planar_confidence_span: float = 0.25
     min_parallax_deg: float = 0.5
     min_common_points: int = 8
     max_link_spread: float = 0.05
@@ -354,13 +359,17 @@ class ClassicalBackbone(Backbone):
         median_parallax = float(np.degrees(np.median(parallax[valid]))) if valid.any() else 0.0
         support = min(1.0, n_inliers / cfg.full_confidence_inliers) * np.sqrt(n_inliers / len(matches))
         geometry = float(np.clip(median_parallax / cfg.full_confidence_parallax_deg, 0.1, 1.0))
+        # Matches explained by one homography (a dominant plane) leave the 5-point pose ambiguous.
+        _, h_mask = cv2.findHomography(pq, pr, cv2.RANSAC, cfg.homography_threshold)
+        h_ratio = float(h_mask.sum()) / n_inliers if h_mask is not None else 0.0
+        planarity = float(np.clip((1.0 - h_ratio) / cfg.planar_confidence_span, 0.2, 1.0))
         return (
             PairGeometry(
                 R=R,
                 t=t,
                 n_matches=len(matches),
                 n_inliers=n_inliers,
-                confidence=float(support * geometry),
+                confidence=float(support * geometry * planarity),
                 query_index=matches[:, 0][inliers][good],
                 depth=depth[good],
             ),
