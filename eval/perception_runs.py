@@ -11,9 +11,11 @@ Shared by the localization, perception, timing and ablation protocols:
   visible surface (ground-truth depth back-projected with the true pose; read here for
   evaluation only, and for the privileged ``simulated`` backbone).
 
-Acc = mean nearest-neighbour distance predicted -> true, Comp = true -> predicted (metres), each
-point set subsampled (seeded) to ``max_points``; both sets keep only points at most ``max_depth``
-metres in front of the camera (the perception range).
+Acc = mean nearest-neighbour distance predicted -> true, Comp = true -> predicted (metres), from
+a seeded subsample of ``max_points`` of one set to all points of the other; both sets keep only
+points at most ``max_depth`` metres in front of the camera (the perception range). Predicted
+points are every second pixel (``OccupancyConfig.point_stride``) with confident depth; the true
+surface is every pixel with finite depth.
 """
 
 from __future__ import annotations
@@ -116,15 +118,21 @@ def query_subset(n_frames: int, n: int | None) -> NDArray[np.int64]:
 def accuracy_completeness(
     pred: NDArray[np.floating], gt: NDArray[np.floating], rng: np.random.Generator, max_points: int = 4000
 ) -> tuple[float, float]:
-    """(Acc, Comp) in metres: mean NN distance pred -> gt and gt -> pred (nan if either is empty)."""
+    """(Acc, Comp) in metres: mean NN distance pred -> gt and gt -> pred (nan if either is empty).
+
+    The distances are measured from at most ``max_points`` (seeded subsample) of each set to ALL
+    points of the other set, so that the sampling density adds no floor to the errors.
+    """
     if len(pred) == 0 or len(gt) == 0:
         return float("nan"), float("nan")
-    if len(pred) > max_points:
-        pred = pred[rng.choice(len(pred), max_points, replace=False)]
-    if len(gt) > max_points:
-        gt = gt[rng.choice(len(gt), max_points, replace=False)]
-    acc = float(cKDTree(gt).query(pred)[0].mean())
-    comp = float(cKDTree(pred).query(gt)[0].mean())
+
+    def sample(points: NDArray[np.floating]) -> NDArray[np.floating]:
+        return (
+            points[rng.choice(len(points), max_points, replace=False)] if len(points) > max_points else points
+        )
+
+    acc = float(cKDTree(gt).query(sample(pred))[0].mean())
+    comp = float(cKDTree(pred).query(sample(gt))[0].mean())
     return acc, comp
 
 
