@@ -84,7 +84,11 @@ class TopDownMap:
         if obstacles is not None and len(obstacles):
             px = self.to_pixels(np.asarray(obstacles, float).reshape(-1, 2))
             ok = (px[:, 0] >= 0) & (px[:, 0] < self.size[0]) & (px[:, 1] >= 0) & (px[:, 1] < self.size[1])
-            img[px[ok, 1], px[ok, 0]] = _FUSED
+            mask = np.zeros(img.shape[:2], np.uint8)
+            mask[px[ok, 1], px[ok, 0]] = 1
+            k = max(1, round(self.scale))  # one map cell
+            mask = cv2.dilate(mask, np.ones((k, k), np.uint8))
+            img[mask > 0] = _FUSED
         for pts, color in ((trajectory, _TRAJECTORY), (path, _PATH)):
             if pts is not None and len(pts) > 1:
                 cv2.polylines(
