@@ -7,9 +7,10 @@ Per frame (paper Sec. III, DESIGN.md "Perception"):
 2. backbone: query first, then the references (database indices as feature-cache keys);
    relative poses ``T_qi`` and query depth at one unknown scale;
 3. motion averaging: metric ``T_wc`` from the references' known poses;
-4. ground-anchored scale: the ground peak of the query points in the gravity frame, scaled to
-   the camera height above the ground anchored at initialisation (robot standing still,
-   known camera-to-base height); falls back to the ray-implied scale when no ground is seen;
+4. ground-anchored scale: the ground peak of the reconstruction's heights in the gravity frame
+   (searched near the height the ray-implied scale of step 3 predicts), scaled to the camera
+   height above the ground anchored at initialisation (robot standing still, known
+   camera-to-base height); falls back to the ray-implied scale when no ground is seen;
 5. occupancy: metric points (confident pixels, every ``point_stride``-th pixel) classified by
    height and fused into the perceiver's log-odds map on top of the database's prior.
 
@@ -40,6 +41,7 @@ from vgpnav_env.perception.scale_recovery import (
     ScaleConfig,
     ScaleEstimate,
     ground_peak,
+    reconstruction_points,
     recover_metric_points,
 )
 
@@ -235,7 +237,7 @@ class Perceiver:
         for rgb, p in zip(images, priv, strict=True):
             loc = self._localize(rgb, p)
             if loc.motion is not None and loc.motion.ok:
-                observations.append((loc.motion.T_wq, loc.ground))
+                observations.append((loc.motion.T_wq, None))
         if observations:
             self.anchor.initialize(observations, self.config.camera_height)
         return [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
@@ -249,22 +251,28 @@ class Perceiver:
         if loc.status == "lost":
             timings["total"] = time.perf_counter() - t_start
             return loc
-        motion, ground, out = loc.motion, loc.ground, loc.backbone
+        motion, out = loc.motion, loc.backbone
         t0 = time.perf_counter()
         T_wc = motion.T_wq
         single = self.config.averaging.method == "single" and self.config.scale.enabled
-        if single and ground.found:
+        if single:
             # One reference's translation is only known at the backbone scale: place the camera
             # with the ground scale at the calibrated camera height (the single-view baseline).
-            est = ScaleEstimate(self.config.camera_height / -ground.height_b, "ground")
-            T_wc = self._single_pose(T_wc, loc.references, motion, out, est.scale)
-        if not self.anchor.initialized and not (single and not ground.found):
-            self.anchor.initialize([(T_wc, ground)], self.config.camera_height)
+            ground = self._ground(out, T_wc, None)
+            if ground.found:
+                est = ScaleEstimate(self.config.camera_height / -ground.height_b, "ground")
+                T_wc = self._single_pose(T_wc, loc.references, motion, out, est.scale)
+            else:
+                est = ScaleEstimate(float("nan"), "none")
+        if not self.anchor.initialized and not (single and not est.ok):
+            self.anchor.initialize([(T_wc, None)], self.config.camera_height)
         if not single:
+            prior = None
+            if self.anchor.initialized and self.config.scale.enabled:
+                prior = self.anchor.expected_height_b(T_wc, motion.scale_from_rays)
+            ground = self._ground(out, T_wc, prior)
             est = self.anchor.scale_for(T_wc, ground, fallback_scale=motion.scale_from_rays)
             est = self._check_scale(est, motion.scale_from_rays)
-        elif not ground.found:
-            est = ScaleEstimate(float("nan"), "none")
         z_ground = float(self.anchor.z_ground) if self.anchor.initialized else float("nan")
         if not est.ok:
             timings["scale_recovery"] += time.perf_counter() - t0
@@ -340,6 +348,26 @@ class Perceiver:
         T[:3, 3] = T_wi[:3, 3] + scale * T_wi[:3, :3] @ out.T_iq[i, :3, 3]
         return T
 
+    def _ground(
+        self, out: BackboneOutput, T_wc: NDArray[np.float64], prior_height_b: float | None
+    ) -> GroundEstimate:
+        """Ground peak (backbone units) of the whole reconstruction: confident query pixels plus the
+        reference depths a backbone returns (moved into the query frame, weighted by pair confidence
+        on the common scale). ``prior_height_b`` restricts the peak to near the expected height."""
+        conf = out.query_depth_confidence
+        conf = np.where(conf >= self.config.occupancy.min_confidence, conf, 0.0)
+        weights = out.confidence * out.scale_valid if out.reference_depths is not None else None
+        points, w = reconstruction_points(
+            self.camera,
+            out.query_depth,
+            conf,
+            out.T_qi,
+            out.reference_depths,
+            weights,
+            stride=self.config.occupancy.point_stride,
+        )
+        return ground_peak(points, T_wc[:3, :3], w, self.config.scale, prior_height_b=prior_height_b)
+
     def _query_points(self, out: BackboneOutput) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Confident query points (N, 3) in backbone units (camera frame) and their confidences."""
         s = self.config.occupancy.point_stride
@@ -350,7 +378,7 @@ class Perceiver:
         return pts[mask], conf[mask].astype(np.float64)
 
     def _localize(self, rgb: NDArray[np.uint8], privileged: Privileged | None) -> PerceptionResult:
-        """Stages 1-3 and the ground peak (backbone units); a lost result or one with motion set."""
+        """Stages 1-3 (retrieval, backbone, motion averaging): a lost result or one with motion set."""
         rgb = np.asarray(rgb)
         expected = (self.camera.height, self.camera.width, 3)
         if rgb.shape != expected or rgb.dtype != np.uint8:
@@ -406,10 +434,6 @@ class Perceiver:
                 n_confident_pairs=n_conf,
             )
 
-        t0 = time.perf_counter()
-        points_q, conf = self._query_points(out)
-        ground = ground_peak(points_q, motion.T_wq[:3, :3], conf, self.config.scale)
-        timings["scale_recovery"] = time.perf_counter() - t0
         return PerceptionResult(
             status="localized",
             reason="",
@@ -423,7 +447,6 @@ class Perceiver:
             z_ground=float("nan"),
             timings=timings,
             motion=motion,
-            ground=ground,
             backbone=out,
             n_confident_pairs=n_conf,
         )
