@@ -49,7 +49,8 @@ class ClassicalConfig:
     Features: ``max_keypoints`` SIFT keypoints with ``sift_contrast_threshold`` (low, because
     rendered interiors are low-contrast: at OpenCV's 0.04 a realistic room gives ~60 keypoints),
     optional CLAHE (``clahe_clip`` > 0). Matching: ``ratio`` test, ``mutual`` check. Two-view:
-    ``max_epipolar_error`` (px), RANSAC iteration bounds, ``min_inliers``; planarity test with
+    ``max_epipolar_error`` (px; 0.5 suits noise-free renders, where it halved gross pairs
+    against 1.0 -- use ~1 px on real images), RANSAC iteration bounds, ``min_inliers``; planarity test with
     ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Plane sweep: image scale,
@@ -65,7 +66,7 @@ class ClassicalConfig:
     clahe_clip: float = 0.0
     ratio: float = 0.8
     mutual: bool = True
-    max_epipolar_error: float = 1.0
+    max_epipolar_error: float = 0.5
     ransac_min_iterations: int = 200
     ransac_max_iterations: int = 2000
     min_inliers: int = 50
@@ -360,7 +361,9 @@ class ClassicalBackbone(Backbone):
         support = min(1.0, n_inliers / cfg.full_confidence_inliers) * np.sqrt(n_inliers / len(matches))
         geometry = float(np.clip(median_parallax / cfg.full_confidence_parallax_deg, 0.1, 1.0))
         # Matches explained by one homography (a dominant plane) leave the 5-point pose ambiguous.
-        _, h_mask = cv2.findHomography(pq, pr, cv2.RANSAC, cfg.homography_threshold)
+        _, h_mask = cv2.findHomography(
+            pq, pr, cv2.RANSAC, cfg.homography_threshold, maxIters=500, confidence=0.99
+        )
         h_ratio = float(h_mask.sum()) / n_inliers if h_mask is not None else 0.0
         planarity = float(np.clip((1.0 - h_ratio) / cfg.planar_confidence_span, 0.2, 1.0))
         return (
