@@ -25,7 +25,7 @@ class LightingPreset:
 
 LIGHTING_PRESETS: dict[str, LightingPreset] = {
     "default": LightingPreset(
-        ambient=(0.35, 0.35, 0.35), room_diffuse=(0.45, 0.45, 0.45), headlight_diffuse=(0.2, 0.2, 0.2)
+        ambient=(0.48, 0.48, 0.48), room_diffuse=(0.62, 0.62, 0.62), headlight_diffuse=(0.3, 0.3, 0.3)
     ),
     "dim": LightingPreset(
         ambient=(0.18, 0.18, 0.18), room_diffuse=(0.25, 0.25, 0.25), headlight_diffuse=(0.1, 0.1, 0.1)
@@ -34,7 +34,7 @@ LIGHTING_PRESETS: dict[str, LightingPreset] = {
         ambient=(0.36, 0.31, 0.24), room_diffuse=(0.5, 0.42, 0.3), headlight_diffuse=(0.2, 0.17, 0.13)
     ),
     "bright": LightingPreset(
-        ambient=(0.5, 0.5, 0.5), room_diffuse=(0.55, 0.55, 0.55), headlight_diffuse=(0.3, 0.3, 0.3)
+        ambient=(0.55, 0.55, 0.55), room_diffuse=(0.65, 0.65, 0.65), headlight_diffuse=(0.35, 0.35, 0.35)
     ),
 }
 

@@ -6,8 +6,10 @@ name, a texture level and a seed into a ``Material`` whose image repeats every `
 
 Texture levels (``TEXTURE_LEVELS``):
 - ``rich``: strong texture everywhere (patterned wallpaper, high-contrast grain and speckle);
-- ``realistic`` (default): what real rooms look like, including the hard cases: near-blank
-  painted walls, repeated tiles, fine carpet; pictures, posters and books carry most structure;
+- ``realistic`` (default): what real rooms look like, including the hard cases: near-blank painted
+  walls (faint plaster mottling, sparse chips), repeated tiles; wood grain and knots, parquet seams,
+  stone-look tiles, heathered carpet/fabric, speckled vinyl, wallpaper, pictures, posters and books
+  carry the structure (median >= 200 default-SIFT keypoints per 320x240 frame on the built-in runs);
 - ``sparse``: mostly plain colours with faint structure.
 Images are uint8 RGB, 256x256 (512x512 for parquet and brick), cached per (name, level, seed, tile).
 """
@@ -27,8 +29,9 @@ from vgpnav_env.scenes.scene import Material
 
 TEXTURE_LEVELS: tuple[str, ...] = ("rich", "realistic", "sparse")
 
-#: Bumped whenever generated images change, so that builds made with older materials are not reused.
-MATERIALS_VERSION = 2
+#: Version of the scene appearance (material images and the lighting presets in ``lighting.py``);
+#: part of the build parameters, so bump it whenever either changes or older builds would be reused.
+MATERIALS_VERSION = 3
 
 _RGB = dict[str, tuple[int, int, int]]
 
@@ -252,7 +255,7 @@ def _tiles(
         for c in range(count):
             tone = 1.0 + contrast * rng.normal(0, 0.05)
             img[r * step : (r + 1) * step, c * step : (c + 1) * step] *= tone
-    stone = 0.015 * _noise(rng, n, 1.0) + 0.012 * _noise(rng, n, 4.0) + 0.12 * _flecks(rng, n, 0.002, 3.0)
+    stone = 0.015 * _noise(rng, n, 1.0) + 0.012 * _noise(rng, n, 4.0) + 0.12 * _flecks(rng, n, 0.004, 3.0)
     img *= (1.0 + contrast * stone)[..., None]
     if level == "rich":
         specks = (rng.random((n, n)) < 0.02).astype(float)
@@ -277,10 +280,12 @@ def _paint(rng: np.random.Generator, n: int, base: NDArray, level: str) -> NDArr
         motif = 0.12 * (motif > 0.6)
         shade = 1.0 + stripes - motif + 0.05 * _noise(rng, n, 1.5) + 0.04 * _noise(rng, n, 12)
         return _tone(base, shade)
-    # Faint roller mottling (blobs of a few centimetres) and plaster grain; still the hardest surface.
+    # Paint over a faint plaster/woodchip ground: roller mottling, plaster grain and sparse chips of
+    # ~1.5 cm; still the hardest surface.
     amp = {"realistic": 1.0, "sparse": 0.15}[level]
-    mottle = _noise(rng, n, 2.5)
-    shade = 1.0 + amp * (0.02 * mottle + 0.012 * _noise(rng, n, n / 8) + 0.003 * _noise(rng, n, 1.0))
+    chips = np.abs(_flecks(rng, n, 0.001, 2.0))
+    plaster = 0.012 * _noise(rng, n, 2.5) + 0.012 * _noise(rng, n, n / 8) + 0.002 * _noise(rng, n, 1.0)
+    shade = 1.0 + amp * (plaster - 0.14 * chips)
     return _tone(base, shade)
 
 
@@ -303,7 +308,7 @@ def _wallpaper(rng: np.random.Generator, n: int, base: NDArray, contrast: float)
             for dx in (-n, 0, n):
                 cv2.circle(img, (cx % n + dx, cy), step // 16, -1.0, -1)
     img = cv2.GaussianBlur(img, (0, 0), 1.0)
-    shade = 1.0 + contrast * (-0.12 * img - 0.06 * stripes + 0.01 * _noise(rng, n, 1.0))
+    shade = 1.0 + contrast * (-0.16 * img - 0.06 * stripes + 0.01 * _noise(rng, n, 1.0))
     return _tone(base, shade)
 
 
@@ -359,12 +364,17 @@ def _brick(rng: np.random.Generator, n: int, base: NDArray, contrast: float) -> 
     return img
 
 
-def _speckled(rng: np.random.Generator, n: int, base: NDArray, contrast: float, density: float) -> NDArray:
+def _speckled(
+    rng: np.random.Generator, n: int, base: NDArray, contrast: float, density: float, chips: float = 0.0
+) -> NDArray:
+    """Fine dark specks of ``density`` per pixel plus, optionally, larger signed chips (vinyl, terrazzo)."""
     specks = (rng.random((n, n)) < density).astype(float)
     specks = cv2.GaussianBlur(np.tile(specks, (3, 3)), (0, 0), 1.2)[n : 2 * n, n : 2 * n] * 5
     shade = 1.0 + contrast * (
         0.03 * _noise(rng, n, n / 10) + 0.02 * _noise(rng, n, 1.0) + 0.02 * _noise(rng, n, 4.0) - 0.3 * specks
     )
+    if chips:
+        shade += contrast * 0.12 * _flecks(rng, n, chips, 2.5)
     return _tone(base, shade)
 
 
@@ -412,7 +422,17 @@ def _picture(rng: np.random.Generator, n: int, contrast: float) -> NDArray:
             col = rng.uniform(0.1, 0.7, 3) * np.array([0.7, 1.0, 0.6])
             for xi in range(n):
                 img[int(h[xi]) :, xi] = col
-        for _ in range(int(rng.integers(3, 9))):
+        for _ in range(int(rng.integers(2, 5))):
+            hx, hy, hw = int(rng.integers(0, n)), int(rng.integers(n // 2, 3 * n // 4)), n // 12
+            cv2.rectangle(img, (hx, hy), (hx + hw, hy + hw), rng.uniform(0.5, 0.95, 3).tolist(), -1)
+            cv2.fillConvexPoly(
+                img,
+                np.array([[hx - 3, hy], [hx + hw + 3, hy], [hx + hw // 2, hy - hw // 2]], np.int32),
+                rng.uniform(0.2, 0.6, 3).tolist(),
+            )
+            door = ((hx + hw // 3, hy + hw // 3), (hx + 2 * hw // 3, hy + hw))
+            cv2.rectangle(img, *door, (0.15, 0.1, 0.1), -1)
+        for _ in range(int(rng.integers(8, 16))):
             tx, ty = int(rng.integers(0, n)), int(rng.integers(n // 2, n))
             cv2.rectangle(img, (tx - 2, ty), (tx + 2, ty + n // 12), (0.25, 0.17, 0.1), -1)
             cv2.circle(
@@ -420,7 +440,7 @@ def _picture(rng: np.random.Generator, n: int, contrast: float) -> NDArray:
             )
     else:
         img[:] = rng.uniform(0.5, 0.95, 3)
-        for _ in range(int(rng.integers(5, 14))):
+        for _ in range(int(rng.integers(12, 24))):
             col = rng.uniform(0.05, 0.95, 3).tolist()
             p = rng.integers(0, n, 4)
             if rng.random() < 0.6:
@@ -429,7 +449,8 @@ def _picture(rng: np.random.Generator, n: int, contrast: float) -> NDArray:
                 cv2.circle(img, (int(p[0]), int(p[1])), int(rng.integers(n // 16, n // 4)), col, -1)
             if rng.random() < 0.3:
                 cv2.line(img, (int(p[0]), 0), (int(p[0]), n), (0.05, 0.05, 0.05), int(rng.integers(2, 6)))
-    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    strokes = _noise(rng, n, 2.0, 0.7)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) * (1.0 + 0.06 * strokes)[..., None]
     return img.mean() + contrast * (img - img.mean())
 
 
@@ -495,7 +516,7 @@ def _books(rng: np.random.Generator, n: int, contrast: float) -> NDArray:
 
 _SIZE_512 = {"parquet", "brick"}
 
-_CONTRAST = {"rich": 2.4, "realistic": 1.6, "sparse": 0.2}
+_CONTRAST = {"rich": 2.4, "realistic": 1.8, "sparse": 0.2}
 
 
 def _image(kind: str, base: NDArray, level: str, rng: np.random.Generator) -> NDArray:
@@ -510,7 +531,7 @@ def _image(kind: str, base: NDArray, level: str, rng: np.random.Generator) -> ND
         "smalltiles": lambda: _tiles(rng, n, base, c, 4, level),
         "carpet": lambda: _carpet(rng, n, base, c),
         "fabric": lambda: _fabric(rng, n, base, c),
-        "linoleum": lambda: _speckled(rng, n, base, c, 0.03),
+        "linoleum": lambda: _speckled(rng, n, base, c, 0.03, chips=0.008),
         "concrete": lambda: _speckled(rng, n, base, 1.5 * c, 0.004),
         "brick": lambda: _brick(rng, n, base, c),
         "marble": lambda: _marble(rng, n, base, c),

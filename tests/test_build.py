@@ -88,11 +88,6 @@ def test_depth_stored_apart_and_consistent(home, home_build: Path) -> None:
     assert np.mean(floor_seen) >= 0.7  # pitched down: most views see the floor
 
 
-@pytest.mark.xfail(
-    reason="scene textures: at 320x240 the 'realistic' home gives a median of ~40-55 default-SIFT keypoints "
-    "per frame ('rich' ~140-180), even for views 3+ m deep; needs stronger textures in vgpnav_env.scenes",
-    strict=False,
-)
 def test_sift_keypoints_at_default_size(home) -> None:
     """Median of per-frame counts over 9 evenly spaced frames of each run, rendered at 320x240 from
     the built poses with the default texture and OpenCV's default SIFT."""
