@@ -9,7 +9,8 @@ agree up to one factor per pair), then the shared scale is fixed by
     scale convention ``"median_query_depth"``: the median depth of the triangulated query
     keypoints is 1.
 
-Pairs outside the largest consistent group keep their rotation and translation direction but
+``n_matches`` counts the matches verified by the pair's essential matrix (0 if RANSAC did not
+run). Pairs outside the largest consistent group keep their rotation and translation direction but
 get ``scale_valid = False`` (and their confidence times ``unlinked_confidence_factor``).
 Pair confidence = min(1, inliers / full_confidence_inliers) * sqrt(inlier ratio) *
 clip(median parallax / full_confidence_parallax_deg, 0.1, 1) * clip((1 - h) / planar_confidence_span,
@@ -321,11 +322,11 @@ class ClassicalBackbone(Backbone):
     def relative_pose(
         self, fq: Features, fr: Features, camera: PinholeCamera
     ) -> tuple[PairGeometry | None, int]:
-        """Two-view geometry of one pair; None (with the match count) when it fails."""
+        """Two-view geometry of one pair and its verified match count; None when it fails."""
         cfg = self.config
         matches = match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
         if len(matches) < cfg.min_inliers:
-            return None, len(matches)
+            return None, 0
         K = camera.K
         cam = {
             "model": "PINHOLE",
@@ -349,7 +350,7 @@ class ClassicalBackbone(Backbone):
         inliers = np.asarray(info["inliers"], bool)
         n_inliers = int(inliers.sum())
         if n_inliers < cfg.min_inliers:
-            return None, len(matches)
+            return None, n_inliers
         R, t = np.asarray(pose.R), np.asarray(pose.t)
         t = t / np.linalg.norm(t)
         K_inv = np.linalg.inv(K)
@@ -376,7 +377,7 @@ class ClassicalBackbone(Backbone):
                 query_index=matches[:, 0][inliers][good],
                 depth=depth[good],
             ),
-            len(matches),
+            n_inliers,
         )
 
     def __call__(
