@@ -31,7 +31,7 @@ TEXTURE_LEVELS: tuple[str, ...] = ("rich", "realistic", "sparse")
 
 #: Version of the scene appearance (material images and the lighting presets in ``lighting.py``);
 #: part of the build parameters, so bump it whenever either changes or older builds would be reused.
-MATERIALS_VERSION = 3
+MATERIALS_VERSION = 4
 
 _RGB = dict[str, tuple[int, int, int]]
 
@@ -531,7 +531,7 @@ def _image(kind: str, base: NDArray, level: str, rng: np.random.Generator) -> ND
         "smalltiles": lambda: _tiles(rng, n, base, c, 4, level),
         "carpet": lambda: _carpet(rng, n, base, c),
         "fabric": lambda: _fabric(rng, n, base, c),
-        "linoleum": lambda: _speckled(rng, n, base, c, 0.03, chips=0.008),
+        "linoleum": lambda: _speckled(rng, n, base, c, 0.03, chips=0.012),
         "concrete": lambda: _speckled(rng, n, base, 1.5 * c, 0.004),
         "brick": lambda: _brick(rng, n, base, c),
         "marble": lambda: _marble(rng, n, base, c),
