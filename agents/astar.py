@@ -82,17 +82,20 @@ class AStarAgent:
         self._last_pose: NDArray[np.float64] | None = None
 
     # -- planning --------------------------------------------------------------------------
-    def traversable(self, obstacles: NDArray[np.bool_], spec: GridSpec, pose: ArrayLike) -> NDArray[np.bool_]:
-        """Cells the robot centre may visit: not within the inflated obstacles (blocked cells
-        included), with the robot's own footprint always traversable so a plan can start."""
+    def traversable(
+        self, obstacles: NDArray[np.bool_], spec: GridSpec, pose: ArrayLike, inflation: float | None = None
+    ) -> NDArray[np.bool_]:
+        """Cells the robot centre may visit: not within ``inflation`` (default: robot radius +
+        margin) of an obstacle or a blocked cell. The robot's own footprint is always
+        traversable (obstacles mapped under the robot are mapping errors), so a plan can start."""
         occ = obstacles.copy()
+        near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
+        occ[near] = False
         if self.blocked_points:
             cells = spec.world_to_cell(np.asarray(self.blocked_points))
             cells = cells[spec.contains(cells)]
             occ[cells[:, 0], cells[:, 1]] = True
-        free = ~inflate(occ, spec.resolution, self.inflation)
-        centres = spec.centres()
-        near = np.linalg.norm(centres - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
+        free = ~inflate(occ, spec.resolution, self.inflation if inflation is None else inflation)
         free[near & ~occ] = True
         return free
 
@@ -111,20 +114,32 @@ class AStarAgent:
         return centres[np.argmin(np.linalg.norm(centres - goal, axis=1))]
 
     def plan(self, pose: ArrayLike, obstacles: NDArray[np.bool_], spec: GridSpec, goal: ArrayLike) -> None:
-        """Recompute ``self.path`` (world (N, 2) waypoints, None if no path exists)."""
+        """Recompute ``self.path`` (world (N, 2) waypoints, None if no path exists).
+
+        Falls back to a tighter inflation (half the robot radius), then to the blocked cells
+        alone (fully optimistic) when the map leaves no path, e.g. after mapping errors.
+        """
         pose = np.asarray(pose, float)
         goal = np.asarray(goal, float)[:2]
-        free = self.traversable(obstacles, spec, pose)
-        target = self._reachable_target(free, spec, goal)
-        try:
-            path = shortest_path(free, spec, pose[:2], target)
-        except ValueError:  # the pose estimate lies off the map
-            path = None
         self.replans += 1
+        attempts = (
+            (obstacles, self.inflation),
+            (obstacles, 0.5 * self.robot_radius),
+            (np.zeros_like(obstacles), self.inflation),
+        )
+        for grid, inflation in attempts:
+            free = self.traversable(grid, spec, pose, inflation)
+            target = self._reachable_target(free, spec, goal)
+            try:
+                path = shortest_path(free, spec, pose[:2], target)
+            except ValueError:  # the pose estimate lies off the map
+                path = None
+            if path is not None and len(path) > 0:
+                break
         self._free, self._spec = free, spec
         if path is None or len(path) == 0:
             self.path = self._dense = self._along = None
-            logger.debug("no path from %s to %s", pose[:2], target)
+            logger.debug("no path from %s to %s", pose[:2], goal)
             return
         self.path = np.asarray(path, float)[:, :2]
         self._dense = _densify(self.path, 0.5 * spec.resolution)
@@ -189,8 +204,8 @@ class AStarAgent:
         if changed or blocked or strayed or self.path is None:
             self.plan(pose, obstacles, spec, goal)
             self._plan_key, self._plan_map = key, obstacles.copy()
-        if self.path is None:
-            return self._turn_or_forward(pose, goal)
+        if self.path is None:  # off the map: head for the goal, turning away after a bump
+            return TURN_LEFT if blocked else self._turn_or_forward(pose, goal)
         if np.linalg.norm(self.path[-1] - pose[:2]) < 0.5 * self.forward_step:
             return STOP  # at the reachable point closest to an unreachable goal
         return self._turn_or_forward(pose, self._waypoint(pose[:2]))

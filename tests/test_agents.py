@@ -146,3 +146,16 @@ def test_oracle_reaches_95_percent_of_20_home_episodes():
     assert summary["success_rate"] >= 0.95, [(r.seed, r.failure) for r in records if not r.success]
     assert summary["spl"] >= 0.8
     assert summary["collisions_per_episode"] <= 1.0
+
+
+def test_agent_plans_despite_obstacles_mapped_under_itself_and_closed_maps():
+    occ, spec = room()
+    agent = AStarAgent(robot_radius=RADIUS)
+    phantom = occ.copy()
+    phantom[18:23, 18:23] = True  # a mapping error right under the robot at (1, 1)
+    agent.plan((1.0, 1.0, 0.0), phantom, spec, (1.0, 5.0))
+    assert agent.path is not None
+    closed = occ.copy()
+    closed[59:61, :] = True  # the gap is mapped closed: fall back to optimistic planning
+    agent.plan((1.0, 1.0, 0.0), closed, spec, (1.0, 5.0))
+    assert agent.path is not None and np.allclose(agent.path[-1], (1.0, 5.0))
