@@ -89,6 +89,10 @@ class PerceptionConfig:
     ``scale_check_ratio``: when the ground scale and the ray-implied scale of motion averaging
     differ by more than this factor, the ground peak is taken to be something else (a table
     top, a plant pot seen from above) and the ray-implied scale is used (None: never).
+    ``single_fallback_confidence``: when weighted motion averaging fails (fewer than two
+    consistent rays) but one pair's backbone confidence is at least this, the pose comes from
+    that pair alone, placed with the ground scale at the calibrated camera height (as the
+    ``single`` ablation does); None = such frames are lost. Requires scale recovery.
     """
 
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
@@ -97,6 +101,7 @@ class PerceptionConfig:
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
     camera_height: float = 1.2
     scale_check_ratio: float | None = 1.5
+    single_fallback_confidence: float | None = 0.3
 
     def __post_init__(self) -> None:
         if not self.camera_height > 0:
@@ -249,12 +254,15 @@ class Perceiver:
         self.n_frames += 1
         timings = loc.timings
         if loc.status == "lost":
-            timings["total"] = time.perf_counter() - t_start
-            return loc
+            fallback = self._single_fallback(loc)
+            if fallback is None:
+                timings["total"] = time.perf_counter() - t_start
+                return loc
+            loc = fallback
         motion, out = loc.motion, loc.backbone
         t0 = time.perf_counter()
         T_wc = motion.T_wq
-        single = self.config.averaging.method == "single" and self.config.scale.enabled
+        single = motion.reason == "single reference" and self.config.scale.enabled
         if single:
             # One reference's translation is only known at the backbone scale: place the camera
             # with the ground scale at the calibrated camera height (the single-view baseline).
@@ -324,6 +332,24 @@ class Perceiver:
             backbone=out,
             n_confident_pairs=loc.n_confident_pairs,
         )
+
+    def _single_fallback(self, loc: PerceptionResult) -> PerceptionResult | None:
+        """``loc`` localized from its most confident pair alone, or None (see PerceptionConfig)."""
+        thr = self.config.single_fallback_confidence
+        out = loc.backbone
+        if thr is None or loc.motion is None or out is None or not self.config.scale.enabled:
+            return None
+        if float(out.confidence.max()) < thr:
+            return None
+        t0 = time.perf_counter()
+        config = replace(self.config.averaging, method="single", single_reference="confidence")
+        motion = average_motion(
+            self.database.poses[loc.references], out.T_qi, out.confidence, config, scale_valid=out.scale_valid
+        )
+        loc.timings["motion_averaging"] += time.perf_counter() - t0
+        loc.status, loc.reason, loc.T_wc, loc.motion = "localized", "", motion.T_wq, motion
+        loc.detail = f"single-pair fallback after: {loc.detail}"
+        return loc
 
     def _check_scale(self, est: ScaleEstimate, ray_scale: float) -> ScaleEstimate:
         r = self.config.scale_check_ratio
