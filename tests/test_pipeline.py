@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from tiny_build import QUERY_HEIGHT, make_tiny_build
 
 from vgpnav_env.geometry import rotation_angle
-from vgpnav_env.perception.backbones import Privileged, make_backbone
+from vgpnav_env.perception.backbones import Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, perceive
 from vgpnav_env.perception.retrieval import VladConfig
@@ -141,3 +142,26 @@ def test_featureless_image_is_lost_not_an_exception(database: Database, image: s
 def test_wrong_image_size_is_a_clear_error(database: Database) -> None:
     with pytest.raises(ValueError, match="shape"):
         perceive(np.zeros((10, 10, 3), np.uint8), database)
+
+
+class _OnePairBackbone(SimulatedBackbone):
+    """The simulated backbone with every pair but the first failed (confidence 0)."""
+
+    def __call__(self, *args, **kwargs):
+        out = super().__call__(*args, **kwargs)
+        out.confidence[1:] = 0.0
+        return out
+
+
+def test_single_pair_fallback(database: Database, query) -> None:
+    run, depth = query
+    i = 2
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    on = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    result = Perceiver(database, _OnePairBackbone(seed=0), config=on).perceive(run.images[i], priv)
+    assert result.localized and result.detail.startswith("single-pair fallback"), result.detail
+    dt, dr = errors(result.T_wc, run.poses[i])
+    assert dt < 0.02 and dr < 0.1
+    off = replace(on, single_fallback_confidence=None)
+    lost = Perceiver(database, _OnePairBackbone(seed=0), config=off).perceive(run.images[i], priv)
+    assert lost.status == "lost" and lost.reason == "no consensus"

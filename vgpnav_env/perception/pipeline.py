@@ -331,6 +331,7 @@ class Perceiver:
             ground=ground,
             backbone=out,
             n_confident_pairs=loc.n_confident_pairs,
+            detail=loc.detail,
         )
 
     def _single_fallback(self, loc: PerceptionResult) -> PerceptionResult | None:
