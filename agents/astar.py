@@ -87,16 +87,16 @@ class AStarAgent:
     ) -> NDArray[np.bool_]:
         """Cells the robot centre may visit: not within ``inflation`` (default: robot radius +
         margin) of an obstacle or a blocked cell. The robot's own footprint is always
-        traversable (obstacles mapped under the robot are mapping errors), so a plan can start."""
+        traversable (obstacles or blocked cells under the robot are errors), so a plan can start."""
         occ = obstacles.copy()
-        near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
-        occ[near] = False
         if self.blocked_points:
             cells = spec.world_to_cell(np.asarray(self.blocked_points))
             cells = cells[spec.contains(cells)]
             occ[cells[:, 0], cells[:, 1]] = True
+        near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
+        occ[near] = False
         free = ~inflate(occ, spec.resolution, self.inflation if inflation is None else inflation)
-        free[near & ~occ] = True
+        free[near] = True
         return free
 
     @staticmethod
@@ -176,6 +176,10 @@ class AStarAgent:
             raise ValueError(
                 f"obstacle grid shape {obstacles.shape} does not match the grid spec {spec.shape}"
             )
+        # A blocked cell the robot now stands on was a wrong guess of where the contact was.
+        self.blocked_points = [
+            p for p in self.blocked_points if np.linalg.norm(p - pose[:2]) > self.robot_radius
+        ]
         blocked = False
         if self._last_action == FORWARD and self._last_pose is not None:
             moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
