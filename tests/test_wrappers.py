@@ -6,6 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from vgpnav_env.perception.backbones import make_backbone
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput
 from vgpnav_env.perception.database import DatabaseConfig
 from vgpnav_env.wrappers import VGPNavObservation, open_database
 
@@ -82,3 +84,48 @@ def test_wrapper_rejects_bad_setups(database):
         )
     with pytest.raises(ValueError, match="160x120"):
         VGPNavObservation(gym.make(ENV_ID, scene="home", image_size=(64, 48)), "simulated", database=database)
+
+
+class FlakyBackbone(Backbone):
+    """The privileged backbone, or no usable reference pair at all while ``fail`` is set."""
+
+    name = "flaky"
+    privileged = True
+
+    def __init__(self) -> None:
+        self.inner = make_backbone("simulated", seed=0)
+        self.fail = False
+
+    def __call__(self, query, references, camera, privileged=None, reference_keys=None) -> BackboneOutput:
+        if not self.fail:
+            return self.inner(query, references, camera, privileged, reference_keys)
+        k, shape = len(references), (camera.height, camera.width)
+        return BackboneOutput(
+            T_qi=np.tile(np.eye(4), (k, 1, 1)),
+            confidence=np.zeros(k),
+            n_matches=np.zeros(k, np.int64),
+            query_depth=np.zeros(shape, np.float32),
+            query_depth_confidence=np.zeros(shape, np.float32),
+            name=self.name,
+            scale="none",
+        )
+
+
+def test_lost_frames_carry_the_estimate_forward_by_nominal_odometry(database):
+    backbone = FlakyBackbone()
+    env = VGPNavObservation(
+        gym.make(ENV_ID, scene="home", image_size=(160, 120)), backbone, database=database
+    )
+    obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    assert obs["localized"] == 1
+    start = obs["pose"].copy()
+    backbone.fail = True
+    obs, _, _, _, info = env.step(1)
+    assert obs["localized"] == 0 and info["perception"]["status"] == "lost"
+    np.testing.assert_allclose(obs["pose"], start + np.array([0.25, 0.0, 0.0]), atol=1e-4)
+    obs, _, _, _, _ = env.step(2)
+    assert obs["pose"][2] == pytest.approx(start[2] + np.radians(15), abs=1e-4)
+    backbone.fail = False
+    obs, _, _, _, info = env.step(3)
+    assert obs["localized"] == 1 and info["localization_error_m"] < 0.05
+    env.close()
