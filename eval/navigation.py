@@ -24,7 +24,7 @@ import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
-from vgpnav_env.agents.astar import AStarAgent
+from vgpnav_env.agents.astar import TURN_LEFT, AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.cli import seed_arg, size_arg
 from vgpnav_env.eval.report import markdown_table, write_report
@@ -46,21 +46,38 @@ class Policy(Protocol):
 class PerceptionAStar:
     """The A* agent on the VGP-Nav wrapper's estimated pose and fused obstacle map.
 
-    Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing) and the wrapper's
-    ``info["obstacles"]`` (bool grid) with ``info["map_spec"]`` (``GridSpec``).
+    Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing), ``obs["localized"]``
+    and the wrapper's ``info["obstacles"]`` (bool grid) with ``info["map_spec"]`` (``GridSpec``).
+    Until the first localized frame of an episode it turns in place (there is no pose to plan
+    from); after ``max_blind_steps`` dead-reckoned steps it turns in place for at most one full
+    turn to look for a view that localizes, then goes on by dead reckoning.
     """
 
-    def __init__(self, env: gym.Env, **agent_kwargs: Any) -> None:
+    def __init__(self, env: gym.Env, max_blind_steps: int = 8, **agent_kwargs: Any) -> None:
         base = env.unwrapped
         agent_kwargs.setdefault("robot_radius", base.robot_radius)
         agent_kwargs.setdefault("forward_step", base.forward_step)
         agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
         self.agent = AStarAgent(**agent_kwargs)
+        self.max_blind_steps = int(max_blind_steps)
+        self.turns_per_circle = int(np.ceil(2.0 * np.pi / base.turn_step))
+        self.reset()
 
     def reset(self) -> None:
         self.agent.reset()
+        self.seen = False  # localized at least once this episode
+        self.blind = 0  # consecutive frames without localization
+        self.searched = 0  # look-around turns in the current blind spell
 
     def act(self, obs: dict[str, Any], info: dict[str, Any]) -> int:
+        if int(np.asarray(obs["localized"]).reshape(-1)[0]):
+            self.seen, self.blind, self.searched = True, 0, 0
+        else:
+            self.blind += 1
+        looking = self.blind > self.max_blind_steps and self.searched < self.turns_per_circle
+        if not self.seen or looking:
+            self.searched += int(self.seen)
+            return TURN_LEFT
         x, y, yaw = np.asarray(obs["pose"], float)
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])

@@ -129,3 +129,26 @@ def test_lost_frames_carry_the_estimate_forward_by_nominal_odometry(database):
     obs, _, _, _, info = env.step(3)
     assert obs["localized"] == 1 and info["localization_error_m"] < 0.05
     env.close()
+
+
+def test_perception_agent_looks_around_until_localized(database):
+    from vgpnav_env.eval.navigation import PerceptionAStar
+
+    backbone = FlakyBackbone()
+    backbone.fail = True
+    env = VGPNavObservation(
+        gym.make(ENV_ID, scene="home", image_size=(160, 120)), backbone, database=database
+    )
+    policy = PerceptionAStar(env, max_blind_steps=2)
+    obs, info = env.reset(seed=0)
+    assert obs["localized"] == 0
+    actions = []
+    for _ in range(3):
+        actions.append(policy.act(obs, info))
+        obs, _, _, _, info = env.step(actions[-1])
+    assert actions == [2, 2, 2]  # never localized: turn in place
+    backbone.fail = False
+    obs, _, _, _, info = env.step(policy.act(obs, info))
+    assert obs["localized"] == 1
+    assert policy.act(obs, info) in (1, 2, 3) and policy.seen and policy.blind == 0
+    env.close()
