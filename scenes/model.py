@@ -22,6 +22,7 @@ group ``COLLISION_GROUP`` too. :func:`build_model` compiles the bare scene and c
 from __future__ import annotations
 
 import logging
+import weakref
 from dataclasses import dataclass
 
 import mujoco
@@ -235,18 +236,22 @@ def build_mjspec(scene: Scene, *, max_image_size: tuple[int, int] = (640, 480)) 
     return spec
 
 
-_MODEL_CACHE: dict[tuple[str, tuple[int, int]], mujoco.MjModel] = {}
+#: Per Scene object (by identity: hand-made scenes may share a ``key``), per max image size.
+_MODEL_CACHE: weakref.WeakKeyDictionary[Scene, dict[tuple[int, int], mujoco.MjModel]] = (
+    weakref.WeakKeyDictionary()
+)
 
 
 def build_model(scene: Scene, *, max_image_size: tuple[int, int] = (640, 480)) -> mujoco.MjModel:
-    """Compiled model of ``scene`` alone, cached in-process by ``(scene.key, max_image_size)``.
+    """Compiled model of ``scene`` alone, cached in-process per Scene object and max image size.
 
     The cached model is shared: renderers only change the ``RENDER_CAMERA`` pose and fovy.
     """
-    key = (scene.key, (int(max_image_size[0]), int(max_image_size[1])))
-    model = _MODEL_CACHE.get(key)
+    size = (int(max_image_size[0]), int(max_image_size[1]))
+    models = _MODEL_CACHE.setdefault(scene, {})
+    model = models.get(size)
     if model is None:
-        model = build_mjspec(scene, max_image_size=key[1]).compile()
+        model = build_mjspec(scene, max_image_size=size).compile()
         logger.info("compiled MuJoCo model %s: %d geoms, %d textures", scene.key, model.ngeom, model.ntex)
-        _MODEL_CACHE[key] = model
+        models[size] = model
     return model

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,7 +153,8 @@ def _close_pinholes(mask: NDArray[np.bool_], max_cells: int = 2) -> NDArray[np.b
     return mask | small[holes]
 
 
-_GT_CACHE: dict[tuple, GroundTruthMap] = {}
+#: Per Scene object (by identity: hand-made scenes may share a ``key``), per parameters.
+_GT_CACHE: weakref.WeakKeyDictionary[Scene, dict[tuple, GroundTruthMap]] = weakref.WeakKeyDictionary()
 
 
 def ground_truth_map(
@@ -178,8 +180,8 @@ def ground_truth_map(
             f"need resolution > 0, robot_radius >= 0 and 0 <= band low < high; got resolution={resolution}, "
             f"robot_radius={robot_radius}, obstacle_band=({low}, {high})"
         )
-    key = (scene.key, resolution, robot_radius, robot_height, low, high, floor_tolerance, seed)
-    cached = _GT_CACHE.get(key)
+    key = (resolution, robot_radius, robot_height, low, high, floor_tolerance, seed)
+    cached = _GT_CACHE.setdefault(scene, {}).get(key)
     if cached is not None:
         return cached
 
@@ -221,5 +223,5 @@ def ground_truth_map(
         gt.area_m2(navigable),
         time.perf_counter() - t0,
     )
-    _GT_CACHE[key] = gt
+    _GT_CACHE[scene][key] = gt
     return gt
