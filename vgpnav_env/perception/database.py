@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,6 +30,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from vgpnav_env.atomic import atomic_write
 from vgpnav_env.geometry import PinholeCamera, invert_pose, transform_points
 from vgpnav_env.grid import GridSpec
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone, ClassicalConfig, FeatureCache
@@ -95,17 +95,6 @@ class DatabaseConfig:
             )
         if self.prior_clamp <= 0 or self.obstacle_max <= 0 or self.prior_max_depth <= 0:
             raise ValueError("prior_clamp, obstacle_max and prior_max_depth must be positive")
-
-
-def _atomic_write(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict[str, Any]:
@@ -233,14 +222,14 @@ class Database:
         self.prior, self.z_ground, stats = build_prior(
             self, ClassicalBackbone(backbone_config, self.feature_cache)
         )
-        _atomic_write(
+        atomic_write(
             arrays_file,
             lambda f: np.savez(
                 f, logodds=self.prior.logodds, z_ground=self.z_ground, fingerprint=np.array(self.fingerprint)
             ),
         )
         meta = {"fingerprint": self.fingerprint, "key": key, "stats": stats}
-        _atomic_write(meta_file, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+        atomic_write(meta_file, lambda f: f.write(json.dumps(meta, indent=2).encode()))
 
 
 def prior_neighbours(poses: NDArray[np.float64], j: int, config: DatabaseConfig) -> NDArray[np.int64]:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -24,6 +23,8 @@ from typing import Literal
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from vgpnav_env.atomic import atomic_write
 
 #: Bumped whenever the descriptor computation changes, so stale caches are not loaded.
 FORMAT_VERSION = 2
@@ -152,18 +153,6 @@ def _vlad(desc: NDArray[np.float32], centres: NDArray[np.float32], power_norm: b
     return v / max(float(np.linalg.norm(v)), 1e-12)
 
 
-def _atomic_write(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 @dataclass
 class VladIndex:
     """A learned VLAD vocabulary (+ optional whitening) and the database's descriptors.
@@ -276,13 +265,13 @@ class VladIndex:
         }
         if self.pca_mean is not None and self.pca_projection is not None:
             arrays |= {"pca_mean": self.pca_mean, "pca_projection": self.pca_projection}
-        _atomic_write(d / _ARRAYS_FILE, lambda f: np.savez(f, **arrays))
+        atomic_write(d / _ARRAYS_FILE, lambda f: np.savez(f, **arrays))
         meta = {
             "format_version": FORMAT_VERSION,
             "fingerprint": self.fingerprint,
             "config": asdict(self.config),
         }
-        _atomic_write(d / _META_FILE, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+        atomic_write(d / _META_FILE, lambda f: f.write(json.dumps(meta, indent=2).encode()))
 
     @classmethod
     def load(cls, directory: str | os.PathLike, expected_fingerprint: str | None = None) -> VladIndex | None:
