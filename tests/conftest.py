@@ -13,6 +13,7 @@ import pytest
 import trimesh
 from PIL import Image
 from trimesh.visual import TextureVisuals
+
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 
 ROOM_X = 4.0
