@@ -362,10 +362,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="build directory (vgpnav build) of the scene at --size; default: the cache, built if missing",
     )
+    parser.add_argument(
+        "--max-steps", type=int, default=500, help="steps before an episode times out (default 500, Habitat)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav eval navigation``; returns the process exit code."""
+    if args.max_steps <= 0:
+        raise ValueError(f"--max-steps must be a positive integer, got {args.max_steps}")
     report = evaluate_navigation(
         args.scene,
         args.agent,
@@ -374,15 +379,13 @@ def run(args: argparse.Namespace) -> int:
         args.seed,
         args.size,
         out_dir=args.out,
+        env_kwargs={"max_steps": args.max_steps},
         database_dir=args.database,
     )
-    logger.info(
-        "navigation %s %s: SR %.2f, SPL %.2f over %d episodes -> %s",
-        args.scene,
-        args.agent,
-        report["success_rate"],
-        report["spl"],
-        report["episodes"],
-        args.out,
+    perception = "true pose and map" if args.agent == "oracle" else f"VGP-Nav, {args.backbone} backbone"
+    print(
+        f"navigation {args.scene} ({args.agent}, {perception}): success rate "
+        f"{report['success_rate']:.2f} ({round(report['success_rate'] * report['episodes'])}/"
+        f"{report['episodes']}), SPL {report['spl']:.2f}\nreport: {Path(args.out) / 'report.md'}"
     )
     return 0
