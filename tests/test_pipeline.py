@@ -51,7 +51,9 @@ def test_database_cache_and_prior(database: Database, build: Path) -> None:
     # The prior marks the boxes occupied and open floor free (tiny_scene: box_a at (1.0, 1.5)).
     spec, prior = database.map_spec, database.prior
     r, c = spec.world_to_cell(np.array([1.0, 1.5]))
-    assert prior.logodds[r - 2 : r + 3, c - 2 : c + 3].max() > 0.5
+    # Most cells of the box's footprint centre are occupied (the classical prior puts obstacle hits
+    # and a few stray free hits there; before the plane-sweep visibility fix only 3 of 25 were).
+    assert (prior.logodds[r - 2 : r + 3, c - 2 : c + 3] > 0).mean() >= 0.5
     r, c = spec.world_to_cell(np.array([2.0, 2.5]))
     assert prior.logodds[r, c] < 0
     again = Database.open(build, config=DatabaseConfig(vlad=FAST_VLAD, prior_stride=3))

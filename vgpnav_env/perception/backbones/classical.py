@@ -474,6 +474,7 @@ class ClassicalBackbone(Backbone):
         small = camera.resized(w, h)
         K, K_inv = small.K, np.linalg.inv(small.K)
         window = (cfg.ncc_window, cfg.ncc_window)
+        kernel = np.ones(window, np.uint8)
 
         def prepare(image: NDArray[np.uint8]) -> NDArray[np.float32]:
             return cv2.resize(grayscale(image), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
@@ -501,10 +502,17 @@ class ClassicalBackbone(Backbone):
                     borderMode=cv2.BORDER_CONSTANT,
                     borderValue=float("nan"),
                 )
+                # Box filters keep running sums along rows, so one NaN would blank the rest of its
+                # row (a reference leaving the view on the left hid the whole image): zero the
+                # unseen pixels and mark windows that reach them instead.
+                unseen = np.isnan(warped)
+                warped[unseen] = 0.0
+                inside = cv2.erode((~unseen).view(np.uint8), kernel, borderValue=1).view(bool)
                 mu_w = cv2.boxFilter(warped, -1, window)
                 var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
                 cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
                 ncc[r] = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
+                ncc[r][~inside] = np.nan
             scores[p] = best_mean(ncc, keep)
 
         visible = np.isfinite(scores).any(axis=0)
