@@ -88,7 +88,7 @@ class ClassicalConfig:
     depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
     min_ncc: float = 0.4
-    full_confidence_margin: float = 0.15
+    full_confidence_margin: float = 0.1
     min_texture_std: float = 0.5
 
     def __post_init__(self) -> None:
