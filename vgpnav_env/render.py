@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import mujoco
 import numpy as np
@@ -59,7 +59,29 @@ def _check_pose(T_wc: ArrayLike) -> NDArray[np.float64]:
     return T
 
 
-class MujocoRenderer:
+_C = TypeVar("_C", bound="_Closing")
+
+
+class _Closing:
+    """Context manager and finalizer that call ``close()`` (idempotent in subclasses)."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self: _C) -> _C:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown may have torn GL down already
+            pass
+
+
+class MujocoRenderer(_Closing):
     """Renders a MuJoCo model (or a ``Scene``, compiled with ``build_model``) from OpenCV poses.
 
     ``data``: an ``MjData`` of the model whose state is drawn (e.g. the environment's robot);
@@ -169,18 +191,6 @@ class MujocoRenderer:
             self._ctx = None
             self._gl.free()
 
-    def __enter__(self) -> MujocoRenderer:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        try:
-            self.close()
-        except Exception:  # noqa: BLE001 - interpreter shutdown may have torn GL down already
-            pass
-
 
 #: pyrender writes gamma-encoded colour, about texture * light^(1/2.2), where MuJoCo writes
 #: texture * light. Scaling pyrender's lights by L^1.2 at a typical total light L = 0.8 makes
@@ -206,7 +216,7 @@ def _import_pyrender():
     return pyrender
 
 
-class PyrenderRenderer:
+class PyrenderRenderer(_Closing):
     """pyrender backend over the scene's trimesh meshes with the same camera contract.
 
     Materials: a mesh whose trimesh visual carries a PBR material (e.g. from a GLB) keeps it;
@@ -330,18 +340,6 @@ class PyrenderRenderer:
         # Disarm pyrender's own finalizers (they would terminate the shared display).
         platform._egl_context = platform._egl_display = None
         offscreen._renderer = offscreen._platform = None
-
-    def __enter__(self) -> PyrenderRenderer:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        try:
-            self.close()
-        except Exception:  # noqa: BLE001 - interpreter shutdown may have torn GL down already
-            pass
 
 
 def make_renderer(
