@@ -66,11 +66,21 @@ def _part(name: str, category: str, extents, centre, material: Material, collide
     return SceneMesh(name, category, mesh, material, collision if collide else [])
 
 
-def make_tiny_scene(with_boxes: bool = True, inner_wall: bool = False) -> Scene:
-    """The tiny room; ``inner_wall`` adds a 0.1 m wall at y = 2.5 from x = 0 to 3 (gap at x > 3)."""
-    floor_mat = Material("floor", (1.0, 1.0, 1.0, 1.0), checker_texture(0, base=(170, 120, 80)), tile_m=1.0)
-    wall_mat = Material("wall", (1.0, 1.0, 1.0, 1.0), checker_texture(1, base=(220, 220, 210)), tile_m=1.5)
-    box_mat = Material("box", (1.0, 1.0, 1.0, 1.0), checker_texture(2, base=(60, 110, 200)), tile_m=0.5)
+def make_tiny_scene(
+    with_boxes: bool = True,
+    inner_wall: bool = False,
+    materials: tuple[Material, Material, Material] | None = None,
+    texture: str = "checker",
+) -> Scene:
+    """The tiny room; ``inner_wall`` adds a 0.1 m wall at y = 2.5 from x = 0 to 3 (gap at x > 3).
+
+    ``materials`` = (floor, wall, box) replaces the default checker materials (``texture`` names them).
+    """
+    floor_mat, wall_mat, box_mat = materials or (
+        Material("floor", (1.0, 1.0, 1.0, 1.0), checker_texture(0, base=(170, 120, 80)), tile_m=1.0),
+        Material("wall", (1.0, 1.0, 1.0, 1.0), checker_texture(1, base=(220, 220, 210)), tile_m=1.5),
+        Material("box", (1.0, 1.0, 1.0, 1.0), checker_texture(2, base=(60, 110, 200)), tile_m=0.5),
+    )
     marker_mat = Material("marker", (1.0, 0.0, 0.0, 1.0))
     t, h = WALL_T, WALL_H
     meshes = [
@@ -96,7 +106,7 @@ def make_tiny_scene(with_boxes: bool = True, inner_wall: bool = False) -> Scene:
     layout = "base" if with_boxes else "empty"
     if inner_wall:
         layout += "_wall"
-    return Scene("tiny", layout, "checker", meshes)
+    return Scene("tiny", layout, texture, meshes)
 
 
 @pytest.fixture(scope="session")

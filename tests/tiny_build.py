@@ -17,7 +17,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from conftest import MARKER, ROOM_X, ROOM_Y, TINY_BOXES, WALL_H, WALL_T, _part
+from conftest import make_tiny_scene
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose
 from vgpnav_env.render import MujocoRenderer
@@ -45,31 +45,12 @@ def textured_room() -> Scene:
     def material(name: str, seed: int, base) -> Material:
         return Material(name, (1.0, 1.0, 1.0, 1.0), blob_texture(seed, base), tile_m=4.0)
 
-    floor, wall, box = (
+    materials = (
         material("floor", 0, (170, 120, 80)),
         material("wall", 1, (220, 220, 210)),
         material("box", 2, (60, 110, 200)),
     )
-    t, h = WALL_T, WALL_H
-    meshes = [
-        _part(
-            "floor",
-            "floor",
-            (ROOM_X + 2 * t, ROOM_Y + 2 * t, 0.02),
-            (ROOM_X / 2, ROOM_Y / 2, -0.01),
-            floor,
-            False,
-        ),
-        _part("wall_south", "wall", (ROOM_X + 2 * t, t, h), (ROOM_X / 2, -t / 2, h / 2), wall),
-        _part("wall_north", "wall", (ROOM_X + 2 * t, t, h), (ROOM_X / 2, ROOM_Y + t / 2, h / 2), wall),
-        _part("wall_west", "wall", (t, ROOM_Y, h), (-t / 2, ROOM_Y / 2, h / 2), wall),
-        _part("wall_east", "wall", (t, ROOM_Y, h), (ROOM_X + t / 2, ROOM_Y / 2, h / 2), wall),
-    ]
-    meshes += [_part(name, "box", extents, centre, box) for name, (centre, extents) in TINY_BOXES.items()]
-    meshes.append(
-        _part("marker", "marker", MARKER[1], MARKER[0], Material("marker", (1.0, 0.0, 0.0, 1.0)), False)
-    )
-    return Scene("tiny", "base", "checker", meshes)
+    return make_tiny_scene(materials=materials, texture="blob")
 
 
 def _poses() -> dict[str, list[np.ndarray]]:
@@ -108,7 +89,7 @@ def make_tiny_build(out: Path, size: tuple[int, int] = (160, 120)) -> Path:
                 "layout": scene.layout,
                 "kind": kind,
                 "seed": 0,
-                "texture": "checker",
+                "texture": scene.texture,
                 "lighting": "default",
             }
             run = Run(np.stack([f.rgb for f in frames]), np.stack(poses), camera, meta)
