@@ -7,13 +7,12 @@ import pytest
 from scipy.spatial import cKDTree
 
 from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
-from vgpnav_env.grid import GridSpec
+from vgpnav_env.grid import GridSpec, largest_component
 from vgpnav_env.trajectories import (
     DATABASE_HEIGHT,
     QUERY_HEIGHT,
     cover_cells,
     coverage_trajectory,
-    largest_component,
 )
 
 

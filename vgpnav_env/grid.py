@@ -170,14 +170,19 @@ def erode(mask: ArrayLike, radius_m: float, spec: GridSpec) -> NDArray[np.bool_]
     less). The grid border counts as outside. E.g. free space eroded by the robot radius keeps
     the cells where a disc robot fits.
     """
-    from scipy.ndimage import distance_transform_edt
-
     mask = _check_mask(mask, spec, "mask")
     if radius_m < 0:
         raise ValueError(f"radius_m must be >= 0 metres, got {radius_m}")
-    padded = np.pad(mask, 1, constant_values=False)
-    clearance = distance_transform_edt(padded)[1:-1, 1:-1] * spec.resolution
-    return mask & (clearance >= radius_m - 1e-9)
+    return mask & (clearance(mask, spec) >= radius_m - 1e-9)
+
+
+def clearance(mask: ArrayLike, spec: GridSpec) -> NDArray[np.float64]:
+    """Metres from every ``mask`` cell centre to the nearest cell centre outside it (0 outside);
+    the grid border counts as outside."""
+    from scipy.ndimage import distance_transform_edt
+
+    padded = np.pad(_check_mask(mask, spec, "mask"), 1, constant_values=False)
+    return distance_transform_edt(padded)[1:-1, 1:-1] * spec.resolution
 
 
 def nearest_true_cell(mask: ArrayLike, cell: ArrayLike) -> tuple[int, int] | None:

@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 from skimage.draw import line as draw_line
 from skimage.graph import MCP_Geometric
 
+from vgpnav_env import grid
 from vgpnav_env.geometry import camera_pose, wrap_angle
-from vgpnav_env.grid import GridSpec
+from vgpnav_env.grid import GridSpec, largest_component
 
 #: Bumped whenever the planner's output for given arguments changes (invalidates cached builds).
 TRAJECTORY_VERSION = 2
@@ -42,21 +42,6 @@ class _Waypoint:
     look_around: bool = False
 
 
-def largest_component(navigable: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """The largest 8-connected component of a boolean grid (all False if the grid is empty)."""
-    labels, n = ndimage.label(navigable, structure=np.ones((3, 3), bool))
-    if n == 0:
-        return np.zeros_like(navigable, dtype=bool)
-    sizes = np.bincount(labels.ravel())[1:]
-    return labels == (int(np.argmax(sizes)) + 1)
-
-
-def clearance_map(component: NDArray[np.bool_], spec: GridSpec) -> NDArray[np.float64]:
-    """Distance (metres) from every component cell to the nearest cell outside it (0 outside)."""
-    padded = np.pad(component, 1, constant_values=False)
-    return ndimage.distance_transform_edt(padded)[1:-1, 1:-1] * spec.resolution
-
-
 def _wall_penalty(clearance: NDArray[np.float64]) -> NDArray[np.float64]:
     """0 at ``CLEARANCE_CAP`` or more from the navigable boundary, rising to 1 at the boundary."""
     return 1.0 - np.minimum(clearance, CLEARANCE_CAP) / CLEARANCE_CAP
@@ -71,7 +56,7 @@ def cover_cells(component: NDArray[np.bool_], spec: GridSpec, cover_spacing: flo
     block_id = np.stack([rows // block, cols // block], axis=1)
     centre = (block_id + 0.5) * block - 0.5
     score = np.hypot(rows - centre[:, 0], cols - centre[:, 1]) * spec.resolution
-    score += cover_spacing * _wall_penalty(clearance_map(component, spec)[rows, cols])
+    score += cover_spacing * _wall_penalty(grid.clearance(component, spec)[rows, cols])
     order = np.lexsort((score, block_id[:, 1], block_id[:, 0]))
     keys = block_id[order]
     first = np.ones(len(order), bool)
@@ -136,7 +121,7 @@ def _tour(
     p_look: float,
 ) -> list[_Waypoint]:
     """Short geodesic tour over the cover cells (nearest neighbour + 2-opt), as polyline waypoints."""
-    clearance = clearance_map(component, spec)
+    clearance = grid.clearance(component, spec)
     # Travel costs up to 1 + WALL_COST near the navigable boundary: paths keep to open space.
     mcp = MCP_Geometric(np.where(component, 1.0 + WALL_COST * _wall_penalty(clearance), np.inf))
     D = np.stack([mcp.find_costs([tuple(c)])[0][covers[:, 0], covers[:, 1]] for c in covers])
