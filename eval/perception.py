@@ -7,7 +7,7 @@ Per query frame the predicted metric world points (confident pixels) are compare
 visible surface of that frame (see :mod:`vgpnav_env.eval.perception_runs`): Acc = mean
 nearest-neighbour distance predicted -> true, Comp = true -> predicted, averaged over the frames
 that localized; Overall = their mean. The ground anchor is initialised on the first query frame
-with the nominal query camera height (1.2 m) and kept for the run. Writes ``DIR/report.json``
+with that frame's camera height as the calibrated height and kept for the run. Writes ``DIR/report.json``
 (``acc_m``, ``comp_m``, ``overall_m``, ``n_frames``, ``n_lost``, records) and ``DIR/report.md``
 with a top-down figure of predicted vs true points of one frame (``points.png``).
 """

@@ -52,8 +52,9 @@ def test_summary_and_layouts(home, home_build: Path) -> None:
     assert s["database_frames"] == len(home.database) and s["query_frames"] == len(home.query)
     assert home.database.metadata["layout"] == "base" and home.database.metadata["kind"] == "database"
     assert home.query.metadata["layout"] == "changed" and home.query.metadata["kind"] == "query"
-    # Modest frame budget, query sparser than the database.
-    assert 100 <= len(home.database) <= 600
+    # Modest frame budget (the database looks around every 1.5 m: ~600 frames on 101 m2 of floor),
+    # query sparser than the database.
+    assert 300 <= len(home.database) <= 900
     assert 30 <= len(home.query) < len(home.database)
     assert home.database.images.shape[1:] == (120, 160, 3)
 
@@ -89,13 +90,14 @@ def test_depth_stored_apart_and_consistent(home, home_build: Path) -> None:
 
 
 def test_sift_keypoints_at_default_size(home) -> None:
-    """Median of per-frame counts over 9 evenly spaced frames of each run, rendered at 320x240 from
-    the built poses with the default texture and OpenCV's default SIFT."""
+    """Median of per-frame counts over 25 evenly spaced frames of each run, rendered at 320x240 from
+    the built poses with the default texture and OpenCV's default SIFT (whole-run medians at 320x240:
+    database 278, query 324; look-around frames facing a wall close up have few)."""
     cam = PinholeCamera(320, 240, np.deg2rad(60.0))
     sift = cv2.SIFT_create()
     for run in (home.database, home.query):
         scene = load_scene("home", layout=run.metadata["layout"], texture="realistic")
-        idx = np.linspace(0, len(run) - 1, 9).round().astype(int)
+        idx = np.linspace(0, len(run) - 1, 25).round().astype(int)
         with MujocoRenderer(scene, cam) as renderer:
             counts = [
                 len(sift.detect(cv2.cvtColor(renderer.render(run.poses[i]).rgb, cv2.COLOR_RGB2GRAY)))

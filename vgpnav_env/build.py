@@ -70,9 +70,9 @@ TRAJECTORIES: dict[str, dict[str, Any]] = {
         "spacing": 0.3,
         "height": DATABASE_HEIGHT,
         "pitch_deg": PITCH_RANGE_DEG,
-        "cover_spacing": 2.0,
+        "cover_spacing": 1.5,
         "max_turn_deg": 45.0,
-        "look_around_prob": 0.2,
+        "look_around_prob": 1.0,
         "yaw_jitter_deg": 10.0,
     },
     "query": {
