@@ -17,10 +17,9 @@ clip(median parallax / full_confidence_parallax_deg, 0.1, 1) * clip((1 - h) / pl
 0.2, 1), where h = homography inliers / essential inliers: a dominant plane leaves the 5-point
 pose ambiguous (on rendered homes, gross pairs had h ~0.9 vs ~0.7 for good ones).
 
-A dense query depth comes from an NCC plane sweep over fronto-parallel inverse-depth planes at
-reduced resolution against the widest-baseline of the most confident linked references, with a
-per-pixel confidence = matching score * uniqueness * texture * visibility (0 where no
-reference sees the pixel; depth 0 there).
+A dense query depth comes from :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`
+against the widest-baseline of the most confident linked references (see that module for the
+method and its confidence).
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Hashable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -39,6 +38,7 @@ from scipy.sparse.csgraph import connected_components
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged, check_inputs
+from vgpnav_env.perception.backbones.stereo import SweepConfig, grayscale, plane_sweep
 
 log = logging.getLogger(__name__)
 
@@ -54,12 +54,9 @@ class ClassicalConfig:
     against 1.0 -- use ~1 px on real images), RANSAC iteration bounds, ``min_inliers``; planarity test with
     ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
-    log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Plane sweep: image scale,
-    number of planes, references (best ``sweep_references`` by baseline among the
-    ``sweep_candidates`` most confident; per pixel the mean NCC of the ``sweep_keep_best`` best),
-    NCC window (px at sweep scale), depth range from sparse-depth percentiles widened by
-    ``depth_range_margin``; confidence terms ``min_ncc``, ``full_confidence_margin``
-    (uniqueness), ``min_texture_std`` (grey levels).
+    log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
+    ``sweep_references`` by baseline among the ``sweep_candidates`` most confident) and the
+    :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep``.
     """
 
     max_keypoints: int = 1500
@@ -79,33 +76,17 @@ class ClassicalConfig:
     min_common_points: int = 8
     max_link_spread: float = 0.05
     unlinked_confidence_factor: float = 0.5
-    sweep_scale: float = 0.5
-    sweep_planes: int = 64
     sweep_candidates: int = 5
     sweep_references: int = 3
-    sweep_keep_best: int = 2
-    ncc_window: int = 7
-    depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
-    depth_range_margin: tuple[float, float] = (0.7, 1.5)
-    min_ncc: float = 0.4
-    full_confidence_margin: float = 0.1
-    min_texture_std: float = 0.5
+    sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
         if self.min_inliers < 5:
             raise ValueError(f"min_inliers must be >= 5 (5-point solver), got {self.min_inliers}")
-        if not 0.0 < self.sweep_scale <= 1.0:
-            raise ValueError(f"sweep_scale must be in (0, 1], got {self.sweep_scale}")
-        if self.sweep_planes < 3 or self.ncc_window < 3 or self.ncc_window % 2 == 0:
-            raise ValueError("sweep_planes must be >= 3 and ncc_window an odd number >= 3")
-        if (
-            self.sweep_references < 1
-            or self.sweep_candidates < self.sweep_references
-            or self.sweep_keep_best < 1
-        ):
-            raise ValueError("need 1 <= sweep_references <= sweep_candidates and sweep_keep_best >= 1")
+        if self.sweep_references < 1 or self.sweep_candidates < self.sweep_references:
+            raise ValueError("need 1 <= sweep_references <= sweep_candidates")
 
 
 @dataclass(frozen=True)
@@ -160,10 +141,6 @@ class PairGeometry:
     depth: NDArray[np.float64]
 
 
-def grayscale(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
-
-
 def match_descriptors(
     a: NDArray[np.float32], b: NDArray[np.float32], ratio: float, mutual: bool
 ) -> NDArray[np.int64]:
@@ -203,27 +180,6 @@ def triangulate_query_depth(
     z_r = (X @ R.T + t)[:, 2]
     valid = np.isfinite(depth) & (depth > 0) & (z_r > 0)
     return depth, parallax, valid
-
-
-def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
-    """Per pixel, the mean of the ``keep`` largest finite values along axis 0 (NaN if none).
-
-    Occlusion-robust aggregation of per-reference NCC: a reference that sees an occluder at a
-    pixel is dropped as long as ``keep`` others see it.
-    """
-    seen = np.isfinite(values)
-    count = seen.sum(axis=0)
-    total = np.where(seen, values, 0.0).sum(axis=0)
-    n = len(values)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if keep >= n:
-            return (total / count).astype(np.float32)
-        if keep == n - 1:
-            lowest = np.where(seen, values, np.inf).min(axis=0)
-            return np.where(count == n, (total - lowest) / keep, total / count).astype(np.float32)
-        top = -np.sort(-np.where(seen, values, -np.inf), axis=0)[:keep]
-        top_seen = np.isfinite(top)
-        return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
 
 
 def link_scales(
@@ -426,8 +382,8 @@ class ClassicalBackbone(Backbone):
         sweep_ids = self.select_sweep_references(confidence, linked, T_iq)
         if sweep_ids and keypoint_depths:
             sparse = np.concatenate(keypoint_depths) / norm
-            depth, depth_conf = self.plane_sweep(
-                query, [references[i] for i in sweep_ids], T_iq[sweep_ids], camera, sparse
+            depth, depth_conf = plane_sweep(
+                query, [references[i] for i in sweep_ids], T_iq[sweep_ids], camera, sparse, self.config.sweep
             )
         timings["plane_sweep"] = time.perf_counter() - t0
         if not confidence.any():
@@ -453,91 +409,3 @@ class ClassicalBackbone(Backbone):
         candidates = candidates[: cfg.sweep_candidates]
         baselines = {i: float(np.linalg.norm(T_iq[i, :3, 3])) for i in candidates}
         return sorted(candidates, key=lambda i: -baselines[i])[: cfg.sweep_references]
-
-    def plane_sweep(
-        self,
-        query: NDArray[np.uint8],
-        references: list[NDArray[np.uint8]],
-        T_iq: NDArray[np.float64],
-        camera: PinholeCamera,
-        sparse_depths: NDArray[np.float64],
-    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Query depth (H, W) and confidence from an NCC sweep of fronto-parallel inverse-depth planes.
-
-        A plane ``z = d`` in the query frame induces ``x_i ~ K (R + t n^T / d) K^-1 x_q``; each
-        reference is warped onto the query per plane, scored by windowed NCC (NaN where the
-        reference does not see the pixel) and averaged over the references that do.
-        """
-        cfg = self.config
-        w = max(8, round(camera.width * cfg.sweep_scale))
-        h = max(8, round(camera.height * cfg.sweep_scale))
-        small = camera.resized(w, h)
-        K, K_inv = small.K, np.linalg.inv(small.K)
-        window = (cfg.ncc_window, cfg.ncc_window)
-        kernel = np.ones(window, np.uint8)
-
-        def prepare(image: NDArray[np.uint8]) -> NDArray[np.float32]:
-            return cv2.resize(grayscale(image), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
-
-        q = prepare(query)
-        mu_q = cv2.boxFilter(q, -1, window)
-        var_q = np.maximum(cv2.boxFilter(q * q, -1, window) - mu_q * mu_q, 0.0)
-        refs = [prepare(r) for r in references]
-
-        lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
-        d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
-        inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.sweep_planes)
-        n = np.array([0.0, 0.0, 1.0])
-        scores = np.empty((cfg.sweep_planes, h, w), np.float32)
-        keep = min(cfg.sweep_keep_best, len(refs))
-        ncc = np.empty((len(refs), h, w), np.float32)
-        for p, inv_d in enumerate(inv_depths):
-            for r, (ref, T) in enumerate(zip(refs, T_iq, strict=True)):
-                H = K @ (T[:3, :3] + np.outer(T[:3, 3], n) * inv_d) @ K_inv
-                warped = cv2.warpPerspective(
-                    ref,
-                    H,
-                    (w, h),
-                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=float("nan"),
-                )
-                # Box filters keep running sums along rows, so one NaN would blank the rest of its
-                # row (a reference leaving the view on the left hid the whole image): zero the
-                # unseen pixels and mark windows that reach them instead.
-                unseen = np.isnan(warped)
-                warped[unseen] = 0.0
-                inside = cv2.erode((~unseen).view(np.uint8), kernel, borderValue=1).view(bool)
-                mu_w = cv2.boxFilter(warped, -1, window)
-                var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
-                cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
-                ncc[r] = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
-                ncc[r][~inside] = np.nan
-            scores[p] = best_mean(ncc, keep)
-
-        visible = np.isfinite(scores).any(axis=0)
-        filled = np.where(np.isfinite(scores), scores, -1.0)
-        best = filled.argmax(axis=0)
-        rows, cols = np.indices((h, w))
-        s0 = filled[best, rows, cols]
-        prev = filled[np.maximum(best - 1, 0), rows, cols]
-        nxt = filled[np.minimum(best + 1, cfg.sweep_planes - 1), rows, cols]
-        curvature = prev + nxt - 2.0 * s0
-        interior = (best > 0) & (best < cfg.sweep_planes - 1) & (curvature < -1e-6)
-        offset = np.where(interior, 0.5 * (prev - nxt) / np.where(interior, curvature, 1.0), 0.0)
-        step = inv_depths[1] - inv_depths[0]
-        inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
-        depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
-
-        # Uniqueness: best score minus the best score outside a +-2 plane neighbourhood.
-        planes = np.arange(cfg.sweep_planes)[:, None, None]
-        far = np.abs(planes - best[None]) > 2
-        second = np.where(far, filled, -1.0).max(axis=0)
-        score_term = np.clip((s0 - cfg.min_ncc) / (1.0 - cfg.min_ncc), 0.0, 1.0)
-        margin_term = np.clip((s0 - second) / cfg.full_confidence_margin, 0.0, 1.0)
-        texture_term = np.clip(np.sqrt(var_q) / cfg.min_texture_std - 1.0, 0.0, 1.0)
-        conf_small = (score_term * margin_term * texture_term * visible * interior).astype(np.float32)
-
-        depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
-        conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
-        return depth, np.clip(conf, 0.0, 1.0)

@@ -1,0 +1,163 @@
+"""Dense query depth from calibrated views: an NCC plane sweep (the classical backbone's MVS step).
+
+Input: the query and reference images (uint8 RGB, one pinhole camera), each reference's pose
+``T_iq`` (maps query-camera coordinates into reference ``i``; translations at the caller's
+unknown scale) and sparse query depths at that scale (they bound the sweep). Output: a query
+z-depth (H, W) float32 at the same scale (0 where unknown) and a confidence (H, W) in [0, 1].
+
+The sweep runs over fronto-parallel inverse-depth planes at reduced resolution; each reference
+is warped onto the query per plane and scored by windowed NCC (NaN where it does not see the
+pixel); per pixel the mean of the ``keep_best`` best references counts (occlusion-robust).
+Confidence = matching score * uniqueness * texture * visibility (0 where no reference sees the
+pixel; depth 0 there).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import PinholeCamera
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """Knobs of the plane sweep: image ``scale``, number of ``planes``, per pixel the mean NCC of
+    the ``keep_best`` best references, NCC window (px at sweep scale), depth range from
+    sparse-depth percentiles widened by ``depth_range_margin``; confidence terms ``min_ncc``,
+    ``full_confidence_margin`` (uniqueness), ``min_texture_std`` (grey levels)."""
+
+    scale: float = 0.5
+    planes: int = 64
+    keep_best: int = 2
+    ncc_window: int = 7
+    depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
+    depth_range_margin: tuple[float, float] = (0.7, 1.5)
+    min_ncc: float = 0.4
+    full_confidence_margin: float = 0.1
+    min_texture_std: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.scale <= 1.0:
+            raise ValueError(f"sweep scale must be in (0, 1], got {self.scale}")
+        if self.planes < 3 or self.ncc_window < 3 or self.ncc_window % 2 == 0:
+            raise ValueError("sweep planes must be >= 3 and ncc_window an odd number >= 3")
+        if self.keep_best < 1:
+            raise ValueError(f"keep_best must be >= 1, got {self.keep_best}")
+
+
+def grayscale(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+
+
+def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
+    """Per pixel, the mean of the ``keep`` largest finite values along axis 0 (NaN if none).
+
+    Occlusion-robust aggregation of per-reference NCC: a reference that sees an occluder at a
+    pixel is dropped as long as ``keep`` others see it.
+    """
+    seen = np.isfinite(values)
+    count = seen.sum(axis=0)
+    total = np.where(seen, values, 0.0).sum(axis=0)
+    n = len(values)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if keep >= n:
+            return (total / count).astype(np.float32)
+        if keep == n - 1:
+            lowest = np.where(seen, values, np.inf).min(axis=0)
+            return np.where(count == n, (total - lowest) / keep, total / count).astype(np.float32)
+        top = -np.sort(-np.where(seen, values, -np.inf), axis=0)[:keep]
+        top_seen = np.isfinite(top)
+        return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
+
+
+def plane_sweep(
+    query: NDArray[np.uint8],
+    references: list[NDArray[np.uint8]],
+    T_iq: NDArray[np.float64],
+    camera: PinholeCamera,
+    sparse_depths: NDArray[np.float64],
+    config: SweepConfig | None = None,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Query depth (H, W) and confidence from an NCC sweep of fronto-parallel inverse-depth planes.
+
+    A plane ``z = d`` in the query frame induces ``x_i ~ K (R + t n^T / d) K^-1 x_q``; each
+    reference is warped onto the query per plane, scored by windowed NCC (NaN where the
+    reference does not see the pixel) and averaged over the references that do.
+    """
+    cfg = config or SweepConfig()
+    w = max(8, round(camera.width * cfg.scale))
+    h = max(8, round(camera.height * cfg.scale))
+    small = camera.resized(w, h)
+    K, K_inv = small.K, np.linalg.inv(small.K)
+    window = (cfg.ncc_window, cfg.ncc_window)
+    kernel = np.ones(window, np.uint8)
+
+    def prepare(image: NDArray[np.uint8]) -> NDArray[np.float32]:
+        return cv2.resize(grayscale(image), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+    q = prepare(query)
+    mu_q = cv2.boxFilter(q, -1, window)
+    var_q = np.maximum(cv2.boxFilter(q * q, -1, window) - mu_q * mu_q, 0.0)
+    refs = [prepare(r) for r in references]
+
+    lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
+    d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
+    inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.planes)
+    n = np.array([0.0, 0.0, 1.0])
+    scores = np.empty((cfg.planes, h, w), np.float32)
+    keep = min(cfg.keep_best, len(refs))
+    ncc = np.empty((len(refs), h, w), np.float32)
+    for p, inv_d in enumerate(inv_depths):
+        for r, (ref, T) in enumerate(zip(refs, T_iq, strict=True)):
+            H = K @ (T[:3, :3] + np.outer(T[:3, 3], n) * inv_d) @ K_inv
+            warped = cv2.warpPerspective(
+                ref,
+                H,
+                (w, h),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float("nan"),
+            )
+            # Box filters keep running sums along rows, so one NaN would blank the rest of its
+            # row (a reference leaving the view on the left hid the whole image): zero the
+            # unseen pixels and mark windows that reach them instead.
+            unseen = np.isnan(warped)
+            warped[unseen] = 0.0
+            inside = cv2.erode((~unseen).view(np.uint8), kernel, borderValue=1).view(bool)
+            mu_w = cv2.boxFilter(warped, -1, window)
+            var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
+            cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
+            ncc[r] = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
+            ncc[r][~inside] = np.nan
+        scores[p] = best_mean(ncc, keep)
+
+    visible = np.isfinite(scores).any(axis=0)
+    filled = np.where(np.isfinite(scores), scores, -1.0)
+    best = filled.argmax(axis=0)
+    rows, cols = np.indices((h, w))
+    s0 = filled[best, rows, cols]
+    prev = filled[np.maximum(best - 1, 0), rows, cols]
+    nxt = filled[np.minimum(best + 1, cfg.planes - 1), rows, cols]
+    curvature = prev + nxt - 2.0 * s0
+    interior = (best > 0) & (best < cfg.planes - 1) & (curvature < -1e-6)
+    offset = np.where(interior, 0.5 * (prev - nxt) / np.where(interior, curvature, 1.0), 0.0)
+    step = inv_depths[1] - inv_depths[0]
+    inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
+    depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
+
+    # Uniqueness: best score minus the best score outside a +-2 plane neighbourhood.
+    planes = np.arange(cfg.planes)[:, None, None]
+    far = np.abs(planes - best[None]) > 2
+    second = np.where(far, filled, -1.0).max(axis=0)
+    score_term = np.clip((s0 - cfg.min_ncc) / (1.0 - cfg.min_ncc), 0.0, 1.0)
+    margin_term = np.clip((s0 - second) / cfg.full_confidence_margin, 0.0, 1.0)
+    texture_term = np.clip(np.sqrt(var_q) / cfg.min_texture_std - 1.0, 0.0, 1.0)
+    conf_small = (score_term * margin_term * texture_term * visible * interior).astype(np.float32)
+
+    depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+    conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+    return depth, np.clip(conf, 0.0, 1.0)
