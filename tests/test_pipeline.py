@@ -11,8 +11,8 @@ import pytest
 from tiny_build import QUERY_HEIGHT, make_tiny_build
 
 from vgpnav_env.geometry import rotation_angle
-from vgpnav_env.perception.backbones import Privileged, SimulatedBackbone, make_backbone
-from vgpnav_env.perception.database import Database, DatabaseConfig
+from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
+from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
 from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, perceive
 from vgpnav_env.perception.retrieval import VladConfig
 from vgpnav_env.runs import load_run, load_run_depth
@@ -75,6 +75,32 @@ def test_index_invalidated_when_run_changes(build: Path, tmp_path: Path) -> None
     assert second.fingerprint != first.fingerprint
     assert second.index.fingerprint == second.fingerprint
     np.testing.assert_allclose(second.index.database[0], first.index.database[1], atol=1e-5)
+
+
+def test_stored_features_equal_fresh_ones_and_follow_the_settings(
+    database: Database, build: Path, tmp_path: Path
+) -> None:
+    store = database.feature_cache
+    assert isinstance(store, StoredFeatures) and store.n_images == len(database)
+    assert (build / "database" / "index" / "features.npz").is_file()
+    backbone = make_backbone("classical")
+    for i in (0, 23, len(database) - 1):
+        fresh, stored = backbone.extract(database.images[i]), store.get(i)
+        np.testing.assert_array_equal(stored.keypoints, fresh.keypoints)
+        np.testing.assert_array_equal(stored.descriptors, fresh.descriptors)
+    assert store.get(len(database)) is None and len(database) not in store
+    # Other feature settings: a cache miss, re-extracted; a backbone with the old ones is refused.
+    copy = tmp_path / "db"
+    shutil.copytree(build / "database", copy)
+    few = ClassicalConfig(max_keypoints=200)
+    small = Database.open(copy, config=DatabaseConfig(vlad=FAST_VLAD, prior="none"), backbone_config=few)
+    assert small.feature_cache.settings["max_keypoints"] == 200
+    assert 0 < np.diff(small.feature_cache.offsets).max() <= 205
+    with pytest.raises(ValueError, match="stored features"):
+        Perceiver(small, "classical")
+    Perceiver(small, make_backbone("classical", config=few, feature_cache=small.feature_cache))
+    again = Database.open(copy, config=DatabaseConfig(vlad=FAST_VLAD, prior="none"), backbone_config=few)
+    np.testing.assert_array_equal(again.feature_cache.sift, small.feature_cache.sift)
 
 
 def test_simulated_backbone_is_exact(database: Database, query) -> None:

@@ -13,8 +13,11 @@ the cache; every file is written atomically):
   (metres / backbone units of the scale-linked pairs); the floor height is the median of the
   per-frame ground peaks; points are classified by height and fused like the online map.
 
-Reference features of the classical backbone are kept in memory in :attr:`Database.feature_cache`
-(not on disk: ~0.8 MB per image).
+- the classical backbone's features of every database image (:class:`StoredFeatures`: SIFT
+  keypoints as float32 pixels and raw SIFT descriptors as uint8, ~0.2 MB per image at 1500
+  keypoints; also keyed by the feature settings of the :class:`ClassicalConfig`). They are loaded
+  into :attr:`Database.feature_cache`, which decodes RootSIFT on demand, so a query never
+  re-extracts a reference's features (the database is preprocessed, as a real system would).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import json
 import logging
 import os
 import time
+from collections.abc import Hashable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -33,7 +37,12 @@ from numpy.typing import NDArray
 from vgpnav_env.atomic import atomic_write
 from vgpnav_env.geometry import PinholeCamera, invert_pose, transform_points
 from vgpnav_env.grid import GridSpec
-from vgpnav_env.perception.backbones.classical import ClassicalBackbone, ClassicalConfig, FeatureCache
+from vgpnav_env.perception.backbones.classical import (
+    ClassicalBackbone,
+    ClassicalConfig,
+    FeatureCache,
+    Features,
+)
 from vgpnav_env.perception.occupancy import LogOddsMap
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex
 from vgpnav_env.perception.scale_recovery import ground_peak
@@ -45,6 +54,10 @@ logger = logging.getLogger(__name__)
 PRIOR_VERSION = 1
 _PRIOR_FILE = "prior.npz"
 _PRIOR_META = "prior.json"
+#: Bumped whenever the stored feature format changes.
+FEATURES_VERSION = 1
+_FEATURES_FILE = "features.npz"
+_FEATURES_META = "features.json"
 
 
 @dataclass(frozen=True)
@@ -59,6 +72,9 @@ class DatabaseConfig:
     ``prior_max_depth`` enter the map, obstacles up to ``obstacle_max`` above the floor.
     The fused log-odds are clamped to +-``prior_clamp`` so that live observations can
     overturn the prior (the layout may have changed since the database was recorded).
+    ``store_features``: extract the classical features of every database image once and cache
+    them on disk (else they are extracted on first use); ``feature_cache_size`` decoded
+    (RootSIFT, float32) images are kept in memory.
     """
 
     vlad: VladConfig = field(default_factory=VladConfig)
@@ -75,7 +91,8 @@ class DatabaseConfig:
     prior_point_stride: int = 2
     obstacle_max: float = 1.2
     prior_clamp: float = 2.0
-    feature_cache_size: int = 512
+    feature_cache_size: int = 64
+    store_features: bool = True
 
     def __post_init__(self) -> None:
         if self.prior not in ("database", "none"):
@@ -108,6 +125,125 @@ def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict
 
 def _jsonable_key(key: dict[str, Any]) -> Any:
     return json.loads(json.dumps(key))
+
+
+def feature_settings(config: ClassicalConfig) -> dict[str, Any]:
+    """The :class:`ClassicalConfig` fields that determine a reference's features (the store's key)."""
+    return {
+        "version": FEATURES_VERSION,
+        "max_keypoints": config.max_keypoints,
+        "sift_contrast_threshold": config.sift_contrast_threshold,
+        "clahe_clip": config.clahe_clip,
+    }
+
+
+class StoredFeatures(FeatureCache):
+    """The classical features of every database image, compact in memory, as a :class:`FeatureCache`.
+
+    Image ``i`` (key = database index) owns rows ``offsets[i]:offsets[i + 1]`` of ``keypoints``
+    (float32 pixels, (n, 2)) and ``sift`` (raw SIFT, uint8, (n, 128)); :meth:`get` decodes its
+    RootSIFT :class:`Features` on demand and keeps the ``max_items`` most recently used decoded
+    images. Other keys behave as in a plain :class:`FeatureCache`. ``settings`` is the
+    :func:`feature_settings` the features were extracted with.
+    """
+
+    def __init__(
+        self,
+        keypoints: NDArray[np.float32],
+        sift: NDArray[np.uint8],
+        offsets: NDArray[np.int64],
+        settings: dict[str, Any],
+        max_items: int = 64,
+    ) -> None:
+        super().__init__(max_items)
+        offsets = np.asarray(offsets, np.int64)
+        if (
+            keypoints.ndim != 2
+            or keypoints.shape[1] != 2
+            or sift.shape != (len(keypoints), 128)
+            or sift.dtype != np.uint8
+            or offsets.ndim != 1
+            or len(offsets) < 1
+            or offsets[0] != 0
+            or offsets[-1] != len(keypoints)
+            or np.any(np.diff(offsets) < 0)
+        ):
+            raise ValueError(
+                "need keypoints (n, 2), uint8 sift (n, 128) and non-decreasing offsets from 0 to n; got "
+                f"{keypoints.shape}, {sift.dtype} {sift.shape}, offsets of length {len(offsets)}"
+            )
+        self.keypoints = keypoints.astype(np.float32, copy=False)
+        self.sift = sift
+        self.offsets = offsets
+        self.settings = settings
+
+    @property
+    def n_images(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the compact store (decoded images come on top: ~0.8 MB each)."""
+        return int(self.keypoints.nbytes + self.sift.nbytes + self.offsets.nbytes)
+
+    def _stored(self, key: Hashable) -> bool:
+        return isinstance(key, int | np.integer) and not isinstance(key, bool) and 0 <= key < self.n_images
+
+    def __contains__(self, key: Hashable) -> bool:
+        return self._stored(key) or super().__contains__(key)
+
+    def get(self, key: Hashable) -> Features | None:
+        features = super().get(key)
+        if features is None and self._stored(key):
+            a, b = self.offsets[key], self.offsets[key + 1]
+            features = Features.from_sift(self.keypoints[a:b], self.sift[a:b])
+            self.put(key, features)
+        return features
+
+    @classmethod
+    def extract(
+        cls, images: NDArray[np.uint8], backbone: ClassicalBackbone, max_items: int = 64
+    ) -> StoredFeatures:
+        """Detect the features of every image (M, H, W, 3) with the backbone's settings."""
+        detected = [backbone.detect(image) for image in images]
+        offsets = np.concatenate([[0], np.cumsum([len(k) for k, _ in detected])]).astype(np.int64)
+        keypoints = np.concatenate([k for k, _ in detected]) if detected else np.zeros((0, 2), np.float32)
+        sift = np.concatenate([d for _, d in detected]) if detected else np.zeros((0, 128), np.uint8)
+        return cls(keypoints, sift, offsets, feature_settings(backbone.config), max_items)
+
+    def save(self, directory: str | os.PathLike, fingerprint: str) -> None:
+        """Write ``features.npz`` + ``features.json`` (each atomically) for the run ``fingerprint``."""
+        d = Path(directory)
+        arrays = {
+            "keypoints": self.keypoints,
+            "sift": self.sift,
+            "offsets": self.offsets,
+            "fingerprint": np.array(fingerprint),
+        }
+        atomic_write(d / _FEATURES_FILE, lambda f: np.savez(f, **arrays))
+        meta = {"fingerprint": fingerprint, "settings": self.settings, "n_images": self.n_images}
+        atomic_write(d / _FEATURES_META, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+
+    @classmethod
+    def load(
+        cls, directory: str | os.PathLike, fingerprint: str, settings: dict[str, Any], max_items: int = 64
+    ) -> StoredFeatures | None:
+        """The stored features, or None when missing, unreadable, of another run or other settings."""
+        d = Path(directory)
+        meta_file, arrays_file = d / _FEATURES_META, d / _FEATURES_FILE
+        if not (meta_file.is_file() and arrays_file.is_file()):
+            return None
+        try:
+            meta = json.loads(meta_file.read_text())
+            if meta.get("fingerprint") != fingerprint or meta.get("settings") != _jsonable_key(settings):
+                return None
+            with np.load(arrays_file) as z:
+                if str(z["fingerprint"]) != fingerprint:
+                    return None
+                return cls(z["keypoints"], z["sift"], z["offsets"], settings, max_items)
+        except (OSError, KeyError, ValueError) as e:
+            logger.warning("ignoring unreadable feature cache in %s: %s", d, e)
+            return None
 
 
 @dataclass(eq=False)
@@ -189,7 +325,17 @@ class Database:
 
         xy = run.positions[:, :2]
         spec = GridSpec.covering(xy.min(axis=0), xy.max(axis=0), config.map_resolution, config.map_margin)
-        feature_cache = FeatureCache(config.feature_cache_size)
+        feature_cache: FeatureCache = FeatureCache(config.feature_cache_size)
+        if config.store_features:
+            t0 = time.perf_counter()
+            settings = feature_settings(backbone_config)
+            feature_cache = StoredFeatures.load(cache, fingerprint, settings, config.feature_cache_size)
+            if feature_cache is None or feature_cache.n_images != len(run):
+                logger.info("extracting the classical features of %d database images", len(run))
+                backbone = ClassicalBackbone(backbone_config)
+                feature_cache = StoredFeatures.extract(run.images, backbone, config.feature_cache_size)
+                feature_cache.save(cache, fingerprint)
+            timings["features"] = time.perf_counter() - t0
         db = cls(path, run, index, fingerprint, config, spec, feature_cache, timings=timings)
         if config.prior == "database":
             t0 = time.perf_counter()

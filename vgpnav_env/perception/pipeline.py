@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
-from vgpnav_env.perception.database import Database
+from vgpnav_env.perception.backbones.classical import ClassicalBackbone
+from vgpnav_env.perception.database import Database, StoredFeatures, feature_settings
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
 from vgpnav_env.perception.occupancy import LogOddsMap, PointClasses
 from vgpnav_env.perception.retrieval import RetrievalConfig, select_references
@@ -206,6 +207,14 @@ class Perceiver:
             options = {"feature_cache": database.feature_cache} if backbone == "classical" else {}
             backbone = make_backbone(backbone, **options)
         self.backbone = backbone
+        cache = getattr(backbone, "feature_cache", None)
+        if isinstance(backbone, ClassicalBackbone) and isinstance(cache, StoredFeatures):
+            if cache.settings != feature_settings(backbone.config):
+                raise ValueError(
+                    f"the database's stored features were extracted with {cache.settings}, the backbone "
+                    f"uses {feature_settings(backbone.config)}: open the database with the backbone's "
+                    "ClassicalConfig (Database.open(..., backbone_config=...))"
+                )
         self.camera = camera or database.camera
         if (self.camera.width, self.camera.height) != (database.camera.width, database.camera.height):
             raise ValueError(

@@ -96,6 +96,14 @@ class Features:
     keypoints: NDArray[np.float64]
     descriptors: NDArray[np.float32]
 
+    @classmethod
+    def from_sift(cls, keypoints: NDArray[np.floating], sift: NDArray[np.integer | np.floating]) -> Features:
+        """Features from SIFT keypoints (n, 2) and raw SIFT descriptors (n, 128; OpenCV's 0..255
+        integers): RootSIFT = square root of the L1-normalised descriptor (unit L2 norm)."""
+        desc = np.asarray(sift, np.float32)
+        desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        return cls(np.asarray(keypoints, float).reshape(-1, 2), desc.reshape(-1, 128))
+
 
 class FeatureCache:
     """Least-recently-used store of :class:`Features` by a stable key (e.g. database index)."""
@@ -255,16 +263,21 @@ class ClassicalBackbone(Backbone):
         clip = self.config.clahe_clip
         self._clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 else None
 
-    def extract(self, image: NDArray[np.uint8]) -> Features:
-        """RootSIFT keypoints of an RGB image (L1-normalise, square root: unit L2 norm)."""
+    def detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
+        """SIFT keypoint pixels (n, 2) float32 and raw descriptors (n, 128) uint8 of an RGB image
+        (lossless: OpenCV's SIFT values are integers 0..255); :meth:`Features.from_sift` makes RootSIFT."""
         gray = grayscale(image)
         if self._clahe is not None:
             gray = self._clahe.apply(gray)
         keypoints, desc = self._sift.detectAndCompute(gray, None)
         if desc is None or len(keypoints) == 0:
-            return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
-        desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
-        return Features(np.array([kp.pt for kp in keypoints], float), desc)
+            return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8)
+        pts = np.array([kp.pt for kp in keypoints], np.float32)
+        return pts, np.clip(np.rint(desc), 0, 255).astype(np.uint8)
+
+    def extract(self, image: NDArray[np.uint8]) -> Features:
+        """RootSIFT keypoints of an RGB image (L1-normalise, square root: unit L2 norm)."""
+        return Features.from_sift(*self.detect(image))
 
     def features(self, image: NDArray[np.uint8], key: Hashable | None) -> Features:
         if key is None:
