@@ -165,3 +165,18 @@ def test_failed_pairs_and_unscaled_pairs() -> None:
     assert res.ok and not res.inliers[:3].any() and res.inliers[3:].all()
     assert np.linalg.norm(res.T_wq[:3, 3] - T_wq[:3, 3]) < 0.02
     assert res.scale_from_rays == pytest.approx(1.0 / UNKNOWN_SCALE, rel=0.01)
+
+
+def test_consensus_prefers_confident_agreement_over_a_weak_repeated_cluster() -> None:
+    """Five weak pairs agreeing on a rotation 90 deg off (a repeated wall texture) lose to four
+    confident correct pairs; with equal confidences the larger cluster would win."""
+    rng = np.random.default_rng(3)
+    T_wq, T_wi, T_qi, _ = _scenario(rng, k=9, rot_noise_deg=0.2, dir_noise_deg=0.2)
+    turn = make_pose(Rotation.from_euler("y", 90, degrees=True).as_matrix(), np.zeros(3))
+    T_qi[4:] = turn @ T_qi[4:]  # the query turned by 90 deg about its vertical axis, same for all 5
+    conf = np.r_[np.full(4, 0.2), np.full(5, 0.11)]
+    res = average_motion(T_wi, T_qi, conf)
+    assert res.ok and res.consensus == 4
+    assert np.degrees(rotation_angle(res.T_wq[:3, :3], T_wq[:3, :3])) < 0.5
+    equal = average_motion(T_wi, T_qi, np.full(9, 0.2))
+    assert equal.consensus == 5

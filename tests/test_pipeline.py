@@ -14,7 +14,7 @@ from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
 from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, perceive
-from vgpnav_env.perception.retrieval import VladConfig
+from vgpnav_env.perception.retrieval import VladConfig, select_references
 from vgpnav_env.runs import load_run, load_run_depth
 
 #: Small vocabulary so the index fits in about a second.
@@ -193,3 +193,54 @@ def test_single_pair_fallback(database: Database, query) -> None:
     off = replace(on, single_fallback_confidence=None)
     lost = Perceiver(database, _OnePairBackbone(seed=0), config=off).perceive(run.images[i], priv)
     assert lost.status == "lost" and lost.reason == "no consensus"
+
+
+class _KnownFailures(SimulatedBackbone):
+    """The simulated backbone with the pairs of the given database indices failed (confidence 0)."""
+
+    def __init__(self, failed, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.failed = {int(i) for i in failed}
+
+    def __call__(self, query, references, camera, privileged=None, reference_keys=None):
+        out = super().__call__(
+            query, references, camera, privileged=privileged, reference_keys=reference_keys
+        )
+        out.confidence[[int(key) in self.failed for key in reference_keys]] = 0.0
+        return out
+
+
+def test_second_round_verifies_references_around_a_lone_pair(database: Database, query) -> None:
+    run, depth = query
+    i = 2
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    first = select_references(database.index.similarity(run.images[i]), database.poses, config.retrieval)
+    result = Perceiver(database, _KnownFailures(first[1:], seed=0), config=config).perceive(
+        run.images[i], priv
+    )
+    assert result.localized and not result.detail, result.detail
+    # Round 2 keeps the lone pair and adds new references near it, which pass.
+    assert result.references[0] == first[0] and not set(result.references[1:].tolist()) & set(first.tolist())
+    assert result.motion.inliers.sum() >= 3
+    dt, dr = errors(result.T_wc, run.poses[i])
+    assert dt < 0.02 and dr < 0.1
+    one_round = replace(config, expand_below_inliers=None)
+    single = Perceiver(database, _KnownFailures(first[1:], seed=0), config=one_round).perceive(
+        run.images[i], priv
+    )
+    assert single.detail.startswith("single-pair fallback")
+
+
+def test_pose_at_the_wrong_camera_height_is_rejected(database: Database, query) -> None:
+    run, depth = query
+    config = PerceptionConfig(
+        camera_height=QUERY_HEIGHT, expand_below_inliers=None, single_fallback_confidence=None
+    )
+    perceiver = Perceiver(database, SimulatedBackbone(seed=0), config=config)
+    perceiver.initialize(run.images[0], Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0]))
+    lifted = run.poses[2].copy()
+    lifted[2, 3] += 0.5  # the backbone's relative poses now put the camera 0.5 m too high
+    result = perceiver.perceive(run.images[2], Privileged(lifted, np.zeros((0, 4, 4)), depth[2]))
+    assert result.status == "lost" and result.reason == "no consensus"
+    assert result.detail == "camera height off by +0.50 m"

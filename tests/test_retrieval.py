@@ -12,6 +12,7 @@ from vgpnav_env.perception.retrieval import (
     VladConfig,
     VladIndex,
     geometric_median,
+    pose_guided_references,
     select_references,
 )
 
@@ -173,3 +174,26 @@ def test_selection_edge_cases() -> None:
         select_references(np.ones(3), T[:2])
     with pytest.raises(ValueError, match="method must be"):
         RetrievalConfig(method="random")
+
+
+def test_pose_guided_references_rank_nearby_cameras_looking_the_same_way() -> None:
+    h = 1.2
+    poses = np.stack(
+        [
+            camera_pose([0.0, 0.0, h], 0.0, 0.0),  # the hypothesis' own camera (excluded)
+            camera_pose([1.0, 0.0, h], 0.0, 0.0),  # 1 m ahead, same heading: 1/1.5 = 0.67
+            camera_pose([0.5, 0.0, h], np.pi, 0.0),  # looks back: never
+            camera_pose([3.0, 0.0, h], 0.0, 0.0),  # too far: never
+            camera_pose([0.0, 0.2, h], np.deg2rad(20.0), 0.0),  # 0.2/1.5 + 20/35 = 0.70
+            camera_pose([0.0, 5.0, h], np.pi / 2, 0.0),  # the second hypothesis' neighbour
+        ]
+    )
+    first = camera_pose([0.0, 0.0, h], 0.0, 0.0)
+    got = pose_guided_references(poses, first[None], 10, exclude=[0])
+    assert got.tolist() == [1, 4]
+    second = camera_pose([0.0, 4.5, h], np.pi / 2, 0.0)
+    # Hypotheses take turns; n caps the count; no index twice.
+    assert pose_guided_references(poses, np.stack([first, second]), 2, exclude=[0]).tolist() == [1, 5]
+    assert pose_guided_references(poses, np.stack([first, first]), 10).tolist() == [0, 1, 4]
+    with pytest.raises(ValueError, match="radius"):
+        pose_guided_references(poses, first[None], 3, radius=0.0)

@@ -9,8 +9,9 @@ unknown common scale) and a backbone confidence in [0, 1]. Derived:
 - world ray ``c_i + s v_i`` (s > 0) through the query centre, ``c_i = t_wi``,
   ``v_i = R_wi t_iq / |t_iq|``.
 
-Rotation: consensus by mutual angular consistency, Gaussian-kernel weights times
-confidence, weighted quaternion mean. Translation: IRLS triangulation
+Rotation: consensus by mutual angular consistency (the seed: the hypothesis whose agreeing
+hypotheses, at least ``min_consensus`` of them, have the largest total confidence),
+Gaussian-kernel weights times confidence, weighted quaternion mean. Translation: IRLS triangulation
 ``min_t sum_i Omega_i |(I - v_i v_i^T)(t - c_i)|^2``, ``Omega_i = w_rot w_geo w_res``.
 """
 
@@ -168,9 +169,12 @@ def _rotation_consensus(
     pair_angle = 2.0 * np.arccos(np.clip(np.abs(quats @ quats.T), 0.0, 1.0))
     pair_angle[~valid, :] = np.inf
     pair_angle[:, ~valid] = np.inf
-    support = (pair_angle <= thr).sum(axis=1)
-    # Most support first, then highest confidence (lexsort: last key is primary).
-    seed = int(np.lexsort((-confidence, -support))[0])
+    agree = pair_angle <= thr
+    support = agree.sum(axis=1)
+    # A seed with enough agreeing hypotheses first, then the most confident agreement (a cluster
+    # of weak, mutually consistent pairs -- a repeated texture -- loses to fewer strong ones).
+    weighted_support = agree.astype(float) @ confidence
+    seed = int(np.lexsort((-weighted_support, support < config.min_consensus))[0])
     members = pair_angle[seed] <= thr
     # Sign-align the members to the seed and take their confidence-weighted mean.
     aligned = quats * np.where(quats @ quats[seed] < 0, -1.0, 1.0)[:, None]

@@ -28,14 +28,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera
+from vgpnav_env.geometry import PinholeCamera, make_pose, rotation_angle
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone
 from vgpnav_env.perception.database import Database, StoredFeatures, feature_settings
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
 from vgpnav_env.perception.occupancy import LogOddsMap, PointClasses
-from vgpnav_env.perception.retrieval import RetrievalConfig, select_references
+from vgpnav_env.perception.retrieval import RetrievalConfig, pose_guided_references, select_references
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
     GroundEstimate,
@@ -96,6 +96,16 @@ class PerceptionConfig:
     ``single`` ablation does); None = such frames are lost. Requires scale recovery. Measured
     on ``home`` (classical, 50 queries, lost / recall@5cm): None 29 / 0.36, 0.5 26 / 0.40,
     0.3 23 / 0.46, 0.15 21 / 0.50, with the same 2 gross (> 0.25 m) errors throughout.
+    ``expand_below_inliers``: when motion averaging keeps fewer consistent references than
+    this (a failed pose counts 0), a second round verifies references chosen by pose: up to
+    ``expand_hypotheses`` distinct pose hypotheses (the averaged pose, the most confident pairs'
+    ``R_wi R_iq`` at their reference centres) select database cameras within ``expand_radius``
+    metres and ``expand_max_angle_deg`` of them; the round with more consistent references wins
+    (None = one round, the paper's pipeline). Retrieval by appearance alone often leaves a
+    single overlapping reference in a large database; the second round finds its neighbours.
+    ``pose_height_tolerance``: a pose whose camera height above the anchored ground differs
+    from ``camera_height`` by more than this (metres) is rejected like a failed consensus
+    (a ground robot's camera stays at its height; None = never).
     """
 
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
@@ -105,6 +115,11 @@ class PerceptionConfig:
     camera_height: float = 1.2
     scale_check_ratio: float | None = 1.5
     single_fallback_confidence: float | None = 0.15
+    expand_below_inliers: int | None = 3
+    expand_hypotheses: int = 2
+    expand_radius: float = 1.5
+    expand_max_angle_deg: float = 35.0
+    pose_height_tolerance: float | None = 0.3
 
     def __post_init__(self) -> None:
         if not self.camera_height > 0:
@@ -416,7 +431,12 @@ class Perceiver:
         return pts[mask], conf[mask].astype(np.float64)
 
     def _localize(self, rgb: NDArray[np.uint8], privileged: Privileged | None) -> PerceptionResult:
-        """Stages 1-3 (retrieval, backbone, motion averaging): a lost result or one with motion set."""
+        """Stages 1-3 (retrieval, backbone, motion averaging): a lost result or one with motion set.
+
+        When the first round leaves fewer than ``expand_below_inliers`` consistent references, a
+        second round verifies references chosen around its pose hypotheses (see
+        :class:`PerceptionConfig`) and the better round is kept.
+        """
         rgb = np.asarray(rgb)
         expected = (self.camera.height, self.camera.width, 3)
         if rgb.shape != expected or rgb.dtype != np.uint8:
@@ -432,17 +452,23 @@ class Perceiver:
         if len(refs) == 0:
             return _lost("too few matches", "empty database", self.map, refs, timings=timings)
 
-        t0 = time.perf_counter()
-        if privileged is not None:
-            privileged = replace(privileged, T_wi=db.poses[refs], reference_depths=None)
-        out = self.backbone(
-            rgb,
-            [db.images[i] for i in refs],
-            self.camera,
-            privileged=privileged,
-            reference_keys=[int(i) for i in refs],
-        )
-        timings["backbone"] = time.perf_counter() - t0
+        out, motion = self._round(rgb, refs, privileged, timings)
+        expansion = self._expansion(refs, out, motion)
+        if len(expansion):
+            out2, motion2 = self._round(rgb, expansion, privileged, timings)
+            logger.debug(
+                "expansion: round 1 %s ok=%s (%s) conf %s; round 2 %s ok=%s (%s) conf %s",
+                refs.tolist(),
+                motion.ok,
+                motion.reason,
+                np.round(out.confidence, 2).tolist(),
+                expansion.tolist(),
+                motion2.ok,
+                motion2.reason,
+                np.round(out2.confidence, 2).tolist(),
+            )
+            if _round_rank(out2, motion2) > _round_rank(out, motion):
+                refs, out, motion = expansion, out2, motion2
         n_conf = int((out.confidence > 0).sum())
         if n_conf == 0:
             return _lost(
@@ -453,12 +479,6 @@ class Perceiver:
                 timings=timings,
                 backbone=out,
             )
-
-        t0 = time.perf_counter()
-        motion = average_motion(
-            db.poses[refs], out.T_qi, out.confidence, self.config.averaging, scale_valid=out.scale_valid
-        )
-        timings["motion_averaging"] = time.perf_counter() - t0
         if not motion.ok:
             reason = "too few matches" if motion.reason == "too few references" else "no consensus"
             return _lost(
@@ -488,6 +508,104 @@ class Perceiver:
             backbone=out,
             n_confident_pairs=n_conf,
         )
+
+    def _round(
+        self,
+        rgb: NDArray[np.uint8],
+        refs: NDArray[np.int64],
+        privileged: Privileged | None,
+        timings: dict[str, float],
+    ) -> tuple[BackboneOutput, MotionResult]:
+        """Backbone + motion averaging over ``refs`` (timings accumulate); a pose whose camera height
+        above the anchored ground is off by more than ``pose_height_tolerance`` is not ok."""
+        db = self.database
+        t0 = time.perf_counter()
+        if privileged is not None:
+            privileged = replace(privileged, T_wi=db.poses[refs], reference_depths=None)
+        out = self.backbone(
+            rgb,
+            [db.images[i] for i in refs],
+            self.camera,
+            privileged=privileged,
+            reference_keys=[int(i) for i in refs],
+        )
+        timings["backbone"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        motion = average_motion(
+            db.poses[refs], out.T_qi, out.confidence, self.config.averaging, scale_valid=out.scale_valid
+        )
+        cfg = self.config
+        weighted = motion.ok and motion.reason != "single reference"
+        tol = cfg.pose_height_tolerance
+        if weighted and tol is not None and self.anchor.initialized:
+            off = self.anchor.camera_height(motion.T_wq) - cfg.camera_height
+            if abs(off) > tol:
+                motion.ok, motion.reason = False, f"camera height off by {off:+.2f} m"
+        timings["motion_averaging"] += time.perf_counter() - t0
+        return out, motion
+
+    def _expansion(
+        self, refs: NDArray[np.int64], out: BackboneOutput, motion: MotionResult
+    ) -> NDArray[np.int64]:
+        """References of the second round (empty: none needed or none found).
+
+        Hypotheses: the averaged pose (when ok), then the most confident pairs' poses (rotation
+        ``R_wi R_iq``; centre along the pair's ray at the scale its ground peak gives at the
+        calibrated camera height, else the reference centre), distinct ones only. Each hypothesis'
+        pair is kept (the averaged pose keeps its inliers; up to k / 2 kept), the rest are new
+        database images around the hypotheses (:func:`pose_guided_references`).
+        """
+        cfg = self.config
+        below = cfg.expand_below_inliers
+        n_inliers = int(motion.inliers.sum()) if motion.ok else 0
+        if below is None or n_inliers >= below or cfg.averaging.method != "weighted":
+            return np.zeros(0, np.int64)
+        poses = self.database.poses
+        hypotheses: list[NDArray[np.float64]] = []
+        keep: list[int] = []
+        if motion.ok:
+            hypotheses.append(motion.T_wq)
+            keep += [int(i) for i in refs[motion.inliers]]
+        consensus = np.deg2rad(cfg.averaging.consensus_deg)
+        for j in np.argsort(-out.confidence, kind="stable"):
+            if out.confidence[j] <= 0 or len(hypotheses) >= cfg.expand_hypotheses + int(motion.ok):
+                break
+            T_wi = poses[refs[j]]
+            T = make_pose(T_wi[:3, :3] @ out.T_iq[j, :3, :3], T_wi[:3, 3])
+            if cfg.scale.enabled:
+                # Along the pair's ray, at the ground scale of the calibrated camera height.
+                ground = self._ground(out, T, None)
+                if ground.found:
+                    T[:3, 3] += cfg.camera_height / -ground.height_b * T_wi[:3, :3] @ out.T_iq[j, :3, 3]
+            if any(
+                np.linalg.norm(T[:3, 3] - h[:3, 3]) <= cfg.expand_radius
+                and rotation_angle(T[:3, :3], h[:3, :3]) <= consensus
+                for h in hypotheses
+            ):
+                continue
+            hypotheses.append(T)
+            keep.append(int(refs[j]))
+        if not hypotheses:
+            return np.zeros(0, np.int64)
+        k = cfg.retrieval.k
+        keep = list(dict.fromkeys(keep))[: max(1, k // 2)]
+        new = pose_guided_references(
+            poses,
+            np.array(hypotheses),
+            k - len(keep),
+            exclude=refs,
+            radius=cfg.expand_radius,
+            max_angle_deg=cfg.expand_max_angle_deg,
+        )
+        if len(new) == 0:
+            return np.zeros(0, np.int64)
+        return np.concatenate([np.array(keep, np.int64), new])
+
+
+def _round_rank(out: BackboneOutput, motion: MotionResult) -> tuple[bool, int, float]:
+    """Order of two rounds' outcomes: a pose, then more consistent references, then the best pair."""
+    n_inliers = int(motion.inliers.sum()) if motion.ok else 0
+    return motion.ok, n_inliers, float(out.confidence.max(initial=0.0))
 
 
 def perceive(

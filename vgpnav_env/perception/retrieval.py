@@ -421,3 +421,49 @@ def select_references(
         available[c] = False
         d_geo = np.minimum(d_geo, delta[c])
     return valid[selected].astype(np.int64)
+
+
+def pose_guided_references(
+    T_w: ArrayLike,
+    hypotheses: ArrayLike,
+    n: int,
+    *,
+    exclude: ArrayLike = (),
+    radius: float = 1.5,
+    max_angle_deg: float = 35.0,
+) -> NDArray[np.int64]:
+    """Up to ``n`` database indices whose cameras should see what a query at a hypothesised pose sees.
+
+    ``T_w`` (M, 4, 4) are the database ``T_wi``; ``hypotheses`` (h, 4, 4) are rough query poses
+    ``T_wq`` (e.g. a reference's centre with the rotation ``R_wi R_iq`` a backbone pair implies),
+    most trusted first. A database camera qualifies for a hypothesis when its centre lies within
+    ``radius`` metres and its optical axis within ``max_angle_deg`` of the hypothesis'; it is
+    ranked by ``distance / radius + angle / max_angle``. The hypotheses take turns (best-ranked
+    first), indices in ``exclude`` are skipped, each index appears once.
+    """
+    T = np.asarray(T_w, float)
+    H = np.asarray(hypotheses, float).reshape(-1, 4, 4)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"T_w must have shape (M, 4, 4), got {T.shape}")
+    if n < 0 or radius <= 0 or not 0 < max_angle_deg <= 180:
+        raise ValueError(
+            f"need n >= 0, radius > 0 and max_angle_deg in (0, 180]; got {n}, {radius}, {max_angle_deg}"
+        )
+    axes = T[:, :3, 2]
+    ranked = []
+    for hyp in H:
+        d = np.linalg.norm(T[:, :3, 3] - hyp[:3, 3], axis=1)
+        ang = np.degrees(np.arccos(np.clip(axes @ hyp[:3, 2], -1.0, 1.0)))
+        ok = np.flatnonzero((d <= radius) & (ang <= max_angle_deg))
+        score = d[ok] / radius + ang[ok] / max_angle_deg
+        ranked.append(list(ok[np.argsort(score, kind="stable")]))
+    chosen: list[int] = []
+    taken = {int(i) for i in np.asarray(exclude, np.int64).ravel()}
+    while len(chosen) < n and any(ranked):
+        for queue in ranked:
+            while queue and int(queue[0]) in taken:
+                queue.pop(0)
+            if queue and len(chosen) < n:
+                chosen.append(int(queue.pop(0)))
+                taken.add(chosen[-1])
+    return np.array(chosen, np.int64)
