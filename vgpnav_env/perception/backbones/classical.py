@@ -77,7 +77,7 @@ class ClassicalConfig:
     max_link_spread: float = 0.05
     unlinked_confidence_factor: float = 0.5
     sweep_candidates: int = 5
-    sweep_references: int = 3
+    sweep_references: int = 5
     sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def __post_init__(self) -> None:

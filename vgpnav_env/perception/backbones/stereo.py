@@ -32,7 +32,7 @@ class SweepConfig:
 
     scale: float = 0.5
     planes: int = 64
-    keep_best: int = 2
+    keep_best: int = 3
     ncc_window: int = 7
     depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
@@ -69,7 +69,7 @@ def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
         if keep == n - 1:
             lowest = np.where(seen, values, np.inf).min(axis=0)
             return np.where(count == n, (total - lowest) / keep, total / count).astype(np.float32)
-        top = -np.sort(-np.where(seen, values, -np.inf), axis=0)[:keep]
+        top = -np.partition(-np.where(seen, values, -np.inf), keep - 1, axis=0)[:keep]
         top_seen = np.isfinite(top)
         return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
 
@@ -110,30 +110,43 @@ def plane_sweep(
     n = np.array([0.0, 0.0, 1.0])
     scores = np.empty((cfg.planes, h, w), np.float32)
     keep = min(cfg.keep_best, len(refs))
-    ncc = np.empty((len(refs), h, w), np.float32)
+    # All references are filtered at once, stacked in one tall image; each is padded by
+    # ncc_window // 2 mirrored rows (OpenCV's default border) so that no window reaches into the
+    # next reference and the NCC equals the per-image one.
+    g = cfg.ncc_window // 2
+    rows = [slice(r * (h + 2 * g) + g, r * (h + 2 * g) + g + h) for r in range(len(refs))]
+
+    def stack(images: list[NDArray[np.float32]]) -> NDArray[np.float32]:
+        return np.concatenate([cv2.copyMakeBorder(i, g, g, 0, 0, cv2.BORDER_REFLECT_101) for i in images])
+
+    stacked_q, stacked_mu_q, stacked_var_q = (stack([x] * len(refs)) for x in (q, mu_q, var_q))
     for p, inv_d in enumerate(inv_depths):
-        for r, (ref, T) in enumerate(zip(refs, T_iq, strict=True)):
+        views = []
+        for ref, T in zip(refs, T_iq, strict=True):
             H = K @ (T[:3, :3] + np.outer(T[:3, 3], n) * inv_d) @ K_inv
-            warped = cv2.warpPerspective(
-                ref,
-                H,
-                (w, h),
-                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=float("nan"),
+            views.append(
+                cv2.warpPerspective(
+                    ref,
+                    H,
+                    (w, h),
+                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=float("nan"),
+                )
             )
-            # Box filters keep running sums along rows, so one NaN would blank the rest of its
-            # row (a reference leaving the view on the left hid the whole image): zero the
-            # unseen pixels and mark windows that reach them instead.
-            unseen = np.isnan(warped)
-            warped[unseen] = 0.0
-            inside = cv2.erode((~unseen).view(np.uint8), kernel, borderValue=1).view(bool)
-            mu_w = cv2.boxFilter(warped, -1, window)
-            var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
-            cov = cv2.boxFilter(q * warped, -1, window) - mu_q * mu_w
-            ncc[r] = cov / np.sqrt(var_q * np.maximum(var_w, 0.0) + 1e-3)
-            ncc[r][~inside] = np.nan
-        scores[p] = best_mean(ncc, keep)
+        warped = stack(views)
+        # Box filters keep running sums along rows, so one NaN would blank the rest of its row (a
+        # reference leaving the view on the left hid the whole image): zero the unseen pixels and
+        # mark windows that reach them instead.
+        unseen = np.isnan(warped)
+        warped[unseen] = 0.0
+        inside = cv2.erode((~unseen).view(np.uint8), kernel, borderValue=1).view(bool)
+        mu_w = cv2.boxFilter(warped, -1, window)
+        var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
+        cov = cv2.boxFilter(stacked_q * warped, -1, window) - stacked_mu_q * mu_w
+        ncc = cov / np.sqrt(stacked_var_q * np.maximum(var_w, 0.0) + 1e-3)
+        ncc[~inside] = np.nan
+        scores[p] = best_mean(np.stack([ncc[r] for r in rows]), keep)
 
     visible = np.isfinite(scores).any(axis=0)
     filled = np.where(np.isfinite(scores), scores, -1.0)
