@@ -244,3 +244,19 @@ def test_pose_at_the_wrong_camera_height_is_rejected(database: Database, query) 
     result = perceiver.perceive(run.images[2], Privileged(lifted, np.zeros((0, 4, 4)), depth[2]))
     assert result.status == "lost" and result.reason == "no consensus"
     assert result.detail == "camera height off by +0.50 m"
+
+
+def test_second_round_tries_the_next_most_similar_images_when_no_pair_passed(
+    database: Database, query
+) -> None:
+    run, depth = query
+    i = 2
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    sims = database.index.similarity(run.images[i])
+    first = select_references(sims, database.poses, config.retrieval)
+    result = Perceiver(database, _KnownFailures(first, seed=0), config=config).perceive(run.images[i], priv)
+    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
+    assert result.localized and result.references.tolist() == untried
+    dt, dr = errors(result.T_wc, run.poses[i])
+    assert dt < 0.02 and dr < 0.1

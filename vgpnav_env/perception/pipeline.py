@@ -89,7 +89,11 @@ class PerceptionConfig:
     ``camera_height``: the calibrated camera-to-base height (metres), the metric anchor.
     ``scale_check_ratio``: when the ground scale and the ray-implied scale of motion averaging
     differ by more than this factor, the ground peak is taken to be something else (a table
-    top, a plant pot seen from above) and the ray-implied scale is used (None: never).
+    top, a plant pot seen from above) and the ray-implied scale is used (None: never). The
+    ground is first searched within ``ScaleConfig.prior_tolerance`` of the ray-implied height
+    (such a peak always passes the check); only when nothing is there does the dominant peak
+    compete, and the check decides (on ``home`` this fixed a 25 % ray-scale error and kept a
+    table top at 2.2x out).
     ``single_fallback_confidence``: when weighted motion averaging fails (fewer than two
     consistent rays) but one pair's backbone confidence is at least this, the pose comes from
     that pair alone, placed with the ground scale at the calibrated camera height (as the
@@ -305,6 +309,10 @@ class Perceiver:
             if self.anchor.initialized and self.config.scale.enabled:
                 prior = self.anchor.expected_height_b(T_wc, motion.scale_from_rays)
             ground = self._ground(out, T_wc, prior)
+            if prior is not None and not ground.found:
+                # Nothing near the ray-implied height: the rays' scale may be off (a weak pair);
+                # the dominant ground peak counts if it passes the scale check against them.
+                ground = self._ground(out, T_wc, None)
             est = self.anchor.scale_for(T_wc, ground, fallback_scale=motion.scale_from_rays)
             est = self._check_scale(est, motion.scale_from_rays)
         z_ground = float(self.anchor.z_ground) if self.anchor.initialized else float("nan")
@@ -453,7 +461,7 @@ class Perceiver:
             return _lost("too few matches", "empty database", self.map, refs, timings=timings)
 
         out, motion = self._round(rgb, refs, privileged, timings)
-        expansion = self._expansion(refs, out, motion)
+        expansion = self._expansion(refs, out, motion, sims)
         if len(expansion):
             out2, motion2 = self._round(rgb, expansion, privileged, timings)
             logger.debug(
@@ -545,7 +553,7 @@ class Perceiver:
         return out, motion
 
     def _expansion(
-        self, refs: NDArray[np.int64], out: BackboneOutput, motion: MotionResult
+        self, refs: NDArray[np.int64], out: BackboneOutput, motion: MotionResult, sims: NDArray[np.float64]
     ) -> NDArray[np.int64]:
         """References of the second round (empty: none needed or none found).
 
@@ -553,7 +561,8 @@ class Perceiver:
         ``R_wi R_iq``; centre along the pair's ray at the scale its ground peak gives at the
         calibrated camera height, else the reference centre), distinct ones only. Each hypothesis'
         pair is kept (the averaged pose keeps its inliers; up to k / 2 kept), the rest are new
-        database images around the hypotheses (:func:`pose_guided_references`).
+        database images around the hypotheses (:func:`pose_guided_references`). Without any
+        hypothesis (no pair passed), the k most similar database images not tried yet.
         """
         cfg = self.config
         below = cfg.expand_below_inliers
@@ -585,9 +594,10 @@ class Perceiver:
                 continue
             hypotheses.append(T)
             keep.append(int(refs[j]))
-        if not hypotheses:
-            return np.zeros(0, np.int64)
         k = cfg.retrieval.k
+        if not hypotheses:
+            untried = np.argsort(-sims, kind="stable")
+            return untried[~np.isin(untried, refs)][:k].astype(np.int64)
         keep = list(dict.fromkeys(keep))[: max(1, k // 2)]
         new = pose_guided_references(
             poses,
