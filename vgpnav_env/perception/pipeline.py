@@ -6,7 +6,9 @@ Per frame (paper Sec. III, DESIGN.md "Perception"):
    (geometry-aware Alg. 1, or plain top-k);
 2. backbone: query first, then the references (database indices as feature-cache keys);
    relative poses ``T_qi`` and query depth at one unknown scale;
-3. motion averaging: metric ``T_wc`` from the references' known poses;
+3. motion averaging: metric ``T_wc`` from the references' known poses; when fewer than
+   ``expand_below_inliers`` references agree, a second round runs steps 2-3 on database images
+   chosen around the first round's pose hypotheses (the best round is kept);
 4. ground-anchored scale: the ground peak of the reconstruction's heights in the gravity frame
    (searched near the height the ray-implied scale of step 3 predicts), scaled to the camera
    height above the ground anchored at initialisation (robot standing still, known
