@@ -5,11 +5,63 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from backbone_synthetic import corner_views, render
+from scipy.spatial.transform import Rotation
 
-from vgpnav_env.geometry import PinholeCamera
-from vgpnav_env.perception.backbones.stereo import SweepConfig, best_mean, plane_sweep
+from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
+from vgpnav_env.perception.backbones.stereo import SweepConfig, best_mean, plane_sweep, speckles
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
+
+
+@pytest.fixture(scope="module")
+def corner():
+    """Query, five references with their exact poses T_iq, the true query depth and sparse depths."""
+    T_wq, T_wi, planes = corner_views(CAMERA, 5, seed=3)
+    query, depth = render(planes, CAMERA, T_wq)
+    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    sparse = np.random.default_rng(0).choice(depth[depth > 0], 300)
+    return query, refs, invert_pose(T_wi) @ T_wq, depth, sparse
+
+
+def coverage_and_outliers(est, conf, truth) -> tuple[float, float, float]:
+    """Confident (>= 0.3, the pipeline's threshold) share of the true pixels, the fraction of them
+    more than 10 % off and their median relative error."""
+    seen = truth > 0
+    confident = seen & (conf >= 0.3)
+    rel = np.abs(est[confident] - truth[confident]) / truth[confident]
+    return confident.sum() / seen.sum(), float(np.mean(rel > 0.1)), float(np.median(rel))
+
+
+def test_room_corner_depth_is_dense_and_accurate(corner):
+    query, refs, T_iq, depth, sparse = corner
+    est, conf = plane_sweep(query, refs, T_iq, CAMERA, sparse)
+    assert est.shape == depth.shape and est.dtype == np.float32 and 0 <= conf.min() <= conf.max() <= 1
+    coverage, outliers, rel = coverage_and_outliers(est, conf, depth)
+    assert coverage > 0.9 and outliers < 0.01 and rel < 0.01, (coverage, outliers, rel)
+
+
+def test_two_references_with_gross_pose_errors_are_outvoted(corner):
+    # The mean of the best 3 of 5 NCCs ignores two references whose poses are badly wrong
+    # (8 deg rotation, reversed translation), as retrieval of look-alike places produces.
+    query, refs, T_iq, depth, sparse = corner
+    wrong = T_iq.copy()
+    tilt = Rotation.from_euler("y", 8.0, degrees=True).as_matrix()
+    for i in (1, 3):
+        wrong[i] = make_pose(tilt @ T_iq[i, :3, :3], -T_iq[i, :3, 3])
+    est, conf = plane_sweep(query, refs, wrong, CAMERA, sparse, SweepConfig(keep_best=3))
+    coverage, outliers, rel = coverage_and_outliers(est, conf, depth)
+    assert coverage > 0.85 and outliers < 0.02 and rel < 0.01, (coverage, outliers, rel)
+
+
+def test_speckles_are_small_isolated_confident_patches():
+    inv_depth = np.full((40, 40), 1.0)
+    inv_depth[5:7, 5:7] = 2.0  # a 4-pixel island 10 planes off
+    inv_depth[20:30, 20:30] = 1.5  # a 100-pixel patch
+    confident = np.ones_like(inv_depth, bool)
+    confident[0, :] = False
+    found = speckles(inv_depth, confident, 0.05, SweepConfig(speckle_size=10))
+    assert found[5:7, 5:7].all() and found.sum() == 4
 
 
 def test_best_mean_matches_a_sorted_reference():

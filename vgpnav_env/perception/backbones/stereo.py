@@ -39,6 +39,9 @@ class SweepConfig:
     min_ncc: float = 0.4
     full_confidence_margin: float = 0.1
     min_texture_std: float = 0.5
+    speckle_size: int = 0
+    speckle_confidence: float = 0.3
+    speckle_max_diff: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.scale <= 1.0:
@@ -72,6 +75,17 @@ def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
         top = -np.partition(-np.where(seen, values, -np.inf), keep - 1, axis=0)[:keep]
         top_seen = np.isfinite(top)
         return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
+
+
+def speckles(
+    inv_depth: NDArray[np.floating], confident: NDArray[np.bool_], step: float, cfg: SweepConfig
+) -> NDArray[np.bool_]:
+    """Confident pixels in 4-connected patches of fewer than ``speckle_size`` pixels whose neighbours
+    differ by at most ``speckle_max_diff`` plane steps (isolated mismatches, cv2.filterSpeckles)."""
+    levels = np.round((inv_depth - inv_depth[confident].min()) / step * 4.0) + 1.0 if confident.any() else 0
+    disparity = np.where(confident, levels, 0).astype(np.int16)
+    cv2.filterSpeckles(disparity, 0, cfg.speckle_size, round(cfg.speckle_max_diff * 4))
+    return confident & (disparity == 0)
 
 
 def plane_sweep(
@@ -160,6 +174,7 @@ def plane_sweep(
     offset = np.where(interior, 0.5 * (prev - nxt) / np.where(interior, curvature, 1.0), 0.0)
     step = inv_depths[1] - inv_depths[0]
     inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
+    step = abs(step)
     depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
 
     # Uniqueness: best score minus the best score outside a +-2 plane neighbourhood.
@@ -170,6 +185,8 @@ def plane_sweep(
     margin_term = np.clip((s0 - second) / cfg.full_confidence_margin, 0.0, 1.0)
     texture_term = np.clip(np.sqrt(var_q) / cfg.min_texture_std - 1.0, 0.0, 1.0)
     conf_small = (score_term * margin_term * texture_term * visible * interior).astype(np.float32)
+    if cfg.speckle_size > 0:
+        conf_small[speckles(inv_depth, conf_small >= cfg.speckle_confidence, step, cfg)] = 0.0
 
     depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
     conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
