@@ -28,12 +28,19 @@ class SweepConfig:
     """Knobs of the plane sweep: image ``scale``, number of ``planes``, per pixel the mean NCC of
     the ``keep_best`` best references, NCC window (px at sweep scale), depth range from
     sparse-depth percentiles widened by ``depth_range_margin``; confidence terms ``min_ncc``,
-    ``full_confidence_margin`` (uniqueness), ``min_texture_std`` (grey levels)."""
+    ``full_confidence_margin`` (uniqueness), ``min_texture_std`` (grey levels). Window check
+    (``check_window`` > 0): a second winner-take-all with that larger window must agree within
+    ``window_agreement`` (inverse depth times the median sparse depth) or the confidence is 0;
+    agreeing pixels get ``confidence_gain`` times the ``ncc_window`` confidence (clipped to 1).
+    Optional speckle removal (``speckle_size`` > 0 pixels at sweep scale)."""
 
     scale: float = 0.5
     planes: int = 64
     keep_best: int = 3
-    ncc_window: int = 7
+    ncc_window: int = 5
+    check_window: int = 11
+    window_agreement: float = 0.08
+    confidence_gain: float = 3.0
     depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
     min_ncc: float = 0.4
@@ -48,6 +55,8 @@ class SweepConfig:
             raise ValueError(f"sweep scale must be in (0, 1], got {self.scale}")
         if self.planes < 3 or self.ncc_window < 3 or self.ncc_window % 2 == 0:
             raise ValueError("sweep planes must be >= 3 and ncc_window an odd number >= 3")
+        if self.check_window and (self.check_window < 3 or self.check_window % 2 == 0):
+            raise ValueError(f"check_window must be 0 (off) or an odd number >= 3, got {self.check_window}")
         if self.keep_best < 1:
             raise ValueError(f"keep_best must be >= 1, got {self.keep_best}")
 
@@ -60,20 +69,21 @@ def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
     """Per pixel, the mean of the ``keep`` largest finite values along axis 0 (NaN if none).
 
     Occlusion-robust aggregation of per-reference NCC: a reference that sees an occluder at a
-    pixel is dropped as long as ``keep`` others see it.
+    pixel is dropped as long as ``keep`` others see it. The smallest values are moved to the end
+    by bubble passes of element-wise min / max (a few array operations for the handful of
+    references; numpy's sort and partition along a short leading axis were slower).
     """
     seen = np.isfinite(values)
-    count = seen.sum(axis=0)
-    total = np.where(seen, values, 0.0).sum(axis=0)
-    n = len(values)
+    ordered = list(np.where(seen, values, -np.inf))
+    for last in range(len(ordered) - 1, keep - 1, -1):
+        for i in range(last):
+            ordered[i], ordered[i + 1] = (
+                np.maximum(ordered[i], ordered[i + 1]),
+                np.minimum(ordered[i], ordered[i + 1]),
+            )
+    top = np.stack(ordered[:keep]) if ordered else np.full((1, *values.shape[1:]), -np.inf)
+    top_seen = np.isfinite(top)
     with np.errstate(invalid="ignore", divide="ignore"):
-        if keep >= n:
-            return (total / count).astype(np.float32)
-        if keep == n - 1:
-            lowest = np.where(seen, values, np.inf).min(axis=0)
-            return np.where(count == n, (total - lowest) / keep, total / count).astype(np.float32)
-        top = -np.partition(-np.where(seen, values, -np.inf), keep - 1, axis=0)[:keep]
-        top_seen = np.isfinite(top)
         return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
 
 
@@ -107,33 +117,34 @@ def plane_sweep(
     h = max(8, round(camera.height * cfg.scale))
     small = camera.resized(w, h)
     K, K_inv = small.K, np.linalg.inv(small.K)
-    window = (cfg.ncc_window, cfg.ncc_window)
-    kernel = np.ones(window, np.uint8)
+    windows = [cfg.ncc_window] + ([cfg.check_window] if cfg.check_window else [])
+    g = max(windows) // 2
 
     def prepare(image: NDArray[np.uint8]) -> NDArray[np.float32]:
         return cv2.resize(grayscale(image), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
 
     q = prepare(query)
-    mu_q = cv2.boxFilter(q, -1, window)
-    var_q = np.maximum(cv2.boxFilter(q * q, -1, window) - mu_q * mu_q, 0.0)
     refs = [prepare(r) for r in references]
-
     lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
     d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
     inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.planes)
     n = np.array([0.0, 0.0, 1.0])
-    scores = np.empty((cfg.planes, h, w), np.float32)
     keep = min(cfg.keep_best, len(refs))
-    # All references are filtered at once, stacked in one tall image; each is padded by
-    # ncc_window // 2 mirrored rows (OpenCV's default border) so that no window reaches into the
-    # next reference and the NCC equals the per-image one.
-    g = cfg.ncc_window // 2
+    # All references are filtered at once, stacked in one tall image; each is padded by g mirrored
+    # rows (OpenCV's default border) so that no window reaches into the next reference and the NCC
+    # equals the per-image one.
     rows = [slice(r * (h + 2 * g) + g, r * (h + 2 * g) + g + h) for r in range(len(refs))]
 
     def stack(images: list[NDArray[np.float32]]) -> NDArray[np.float32]:
         return np.concatenate([cv2.copyMakeBorder(i, g, g, 0, 0, cv2.BORDER_REFLECT_101) for i in images])
 
-    stacked_q, stacked_mu_q, stacked_var_q = (stack([x] * len(refs)) for x in (q, mu_q, var_q))
+    stacked_q = stack([q] * len(refs))
+    query_stats = []
+    for size in windows:
+        mu_q = cv2.boxFilter(q, -1, (size, size))
+        var_q = np.maximum(cv2.boxFilter(q * q, -1, (size, size)) - mu_q * mu_q, 0.0)
+        query_stats.append((stack([mu_q] * len(refs)), stack([var_q] * len(refs)), var_q))
+    scores = np.empty((len(windows), cfg.planes, h, w), np.float32)
     for p, inv_d in enumerate(inv_depths):
         views = []
         for ref, T in zip(refs, T_iq, strict=True):
@@ -154,40 +165,55 @@ def plane_sweep(
         # mark windows that reach them instead.
         unseen = np.isnan(warped)
         warped[unseen] = 0.0
-        inside = cv2.erode((~unseen).view(np.uint8), kernel, borderValue=1).view(bool)
-        mu_w = cv2.boxFilter(warped, -1, window)
-        var_w = cv2.boxFilter(warped * warped, -1, window) - mu_w * mu_w
-        cov = cv2.boxFilter(stacked_q * warped, -1, window) - stacked_mu_q * mu_w
-        ncc = cov / np.sqrt(stacked_var_q * np.maximum(var_w, 0.0) + 1e-3)
-        ncc[~inside] = np.nan
-        scores[p] = best_mean(np.stack([ncc[r] for r in rows]), keep)
+        seen = (~unseen).view(np.uint8)
+        products = (warped, warped * warped, stacked_q * warped)
+        for k, (size, (mu_q, var_q, _)) in enumerate(zip(windows, query_stats, strict=True)):
+            mu_w, sq_w, qw = (cv2.boxFilter(x, -1, (size, size)) for x in products)
+            ncc = (qw - mu_q * mu_w) / np.sqrt(var_q * np.maximum(sq_w - mu_w * mu_w, 0.0) + 1e-3)
+            ncc[~cv2.erode(seen, np.ones((size, size), np.uint8), borderValue=1).view(bool)] = np.nan
+            scores[k, p] = best_mean(np.stack([ncc[r] for r in rows]), keep)
 
+    inv_depth, conf_small, visible = winner_take_all(scores[0], inv_depths, query_stats[0][2], cfg)
+    if cfg.check_window:
+        inv_check, _, _ = winner_take_all(scores[1], inv_depths, query_stats[1][2], cfg)
+        agree = np.abs(inv_depth - inv_check) * np.median(sparse_depths) <= cfg.window_agreement
+        conf_small = np.where(agree, np.minimum(conf_small * cfg.confidence_gain, 1.0), 0.0).astype(
+            np.float32
+        )
+    if cfg.speckle_size > 0:
+        step = abs(inv_depths[1] - inv_depths[0])
+        conf_small[speckles(inv_depth, conf_small >= cfg.speckle_confidence, step, cfg)] = 0.0
+    depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
+    depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+    conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+    return depth, np.clip(conf, 0.0, 1.0)
+
+
+def winner_take_all(
+    scores: NDArray[np.float32], inv_depths: NDArray[np.float64], var_q: NDArray[np.float32], cfg: SweepConfig
+) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.bool_]]:
+    """Per pixel the best plane's inverse depth (parabolic sub-plane refinement), its confidence
+    (score * uniqueness * texture * visibility) and whether any reference sees the pixel, from
+    NCC ``scores`` (planes, h, w; NaN unseen) and the query's windowed variance ``var_q``."""
+    n_planes, h, w = scores.shape
     visible = np.isfinite(scores).any(axis=0)
     filled = np.where(np.isfinite(scores), scores, -1.0)
     best = filled.argmax(axis=0)
     rows, cols = np.indices((h, w))
     s0 = filled[best, rows, cols]
     prev = filled[np.maximum(best - 1, 0), rows, cols]
-    nxt = filled[np.minimum(best + 1, cfg.planes - 1), rows, cols]
+    nxt = filled[np.minimum(best + 1, n_planes - 1), rows, cols]
     curvature = prev + nxt - 2.0 * s0
-    interior = (best > 0) & (best < cfg.planes - 1) & (curvature < -1e-6)
+    interior = (best > 0) & (best < n_planes - 1) & (curvature < -1e-6)
     offset = np.where(interior, 0.5 * (prev - nxt) / np.where(interior, curvature, 1.0), 0.0)
-    step = inv_depths[1] - inv_depths[0]
-    inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
-    step = abs(step)
-    depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
+    inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * (inv_depths[1] - inv_depths[0])
 
     # Uniqueness: best score minus the best score outside a +-2 plane neighbourhood.
-    planes = np.arange(cfg.planes)[:, None, None]
-    far = np.abs(planes - best[None]) > 2
-    second = np.where(far, filled, -1.0).max(axis=0)
+    for shift in range(-2, 3):
+        filled[np.clip(best + shift, 0, n_planes - 1), rows, cols] = -1.0
+    second = filled.max(axis=0)
     score_term = np.clip((s0 - cfg.min_ncc) / (1.0 - cfg.min_ncc), 0.0, 1.0)
     margin_term = np.clip((s0 - second) / cfg.full_confidence_margin, 0.0, 1.0)
     texture_term = np.clip(np.sqrt(var_q) / cfg.min_texture_std - 1.0, 0.0, 1.0)
-    conf_small = (score_term * margin_term * texture_term * visible * interior).astype(np.float32)
-    if cfg.speckle_size > 0:
-        conf_small[speckles(inv_depth, conf_small >= cfg.speckle_confidence, step, cfg)] = 0.0
-
-    depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
-    conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
-    return depth, np.clip(conf, 0.0, 1.0)
+    conf = (score_term * margin_term * texture_term * visible * interior).astype(np.float32)
+    return inv_depth, conf, visible
