@@ -112,3 +112,23 @@ def test_bad_sweep_config_is_rejected():
         SweepConfig(scale=0.0)
     with pytest.raises(ValueError, match="odd"):
         SweepConfig(ncc_window=4)
+
+
+def test_surfaces_nearer_than_the_sparse_points_are_swept():
+    # A textured wall at 1 m while the sparse points lie at 2-3 m (e.g. a wall beside the robot
+    # without keypoints): the near planes reach it, without them nothing there is confident.
+    depth, f = 1.0, CAMERA.K[0, 0]
+    shift = round(f * 0.1 / depth)
+    query, ref = _shifted_plane_views(-shift)
+    T_iq = np.eye(4)
+    T_iq[0, 3] = -shift / f * depth
+    sparse = np.array([2.0, 2.5, 3.0])
+    inner = (slice(8, -8), slice(shift + 8, CAMERA.width - 8))
+    est, conf = plane_sweep(query, [ref, ref], np.stack([T_iq, T_iq]), CAMERA, sparse)
+    confident = conf[inner] > 0.3
+    assert confident.mean() > 0.8
+    assert np.median(np.abs(est[inner][confident] - depth)) < 0.02 * depth
+    _, conf = plane_sweep(
+        query, [ref, ref], np.stack([T_iq, T_iq]), CAMERA, sparse, SweepConfig(near_depth_factor=0.0)
+    )
+    assert (conf[inner] > 0.3).mean() < 0.05

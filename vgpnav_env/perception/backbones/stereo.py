@@ -32,6 +32,8 @@ class SweepConfig:
     (``check_window`` > 0): a second winner-take-all with that larger window must agree within
     ``window_agreement`` (inverse depth times the median sparse depth) or the confidence is 0;
     agreeing pixels get ``confidence_gain`` times the ``ncc_window`` confidence (clipped to 1).
+    Near planes: from ``near_depth_factor`` times the median sparse depth (0 = off) to the depth
+    range, ``near_plane_step`` times coarser in inverse depth.
     Optional speckle removal (``speckle_size`` > 0 pixels at sweep scale)."""
 
     scale: float = 0.5
@@ -43,6 +45,8 @@ class SweepConfig:
     confidence_gain: float = 3.0
     depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
+    near_depth_factor: float = 0.25
+    near_plane_step: float = 3.0
     min_ncc: float = 0.4
     full_confidence_margin: float = 0.1
     min_texture_std: float = 0.5
@@ -128,6 +132,14 @@ def plane_sweep(
     lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
     d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
     inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.planes)
+    near = cfg.near_depth_factor * float(np.median(sparse_depths))
+    if 0 < near < d_min:
+        # Surfaces nearer than the sparse points (a wall beside the robot) get coarser planes: the
+        # depth error of one inverse-depth step shrinks with the square of the depth.
+        coarse = cfg.near_plane_step * (inv_depths[0] - inv_depths[1])
+        inv_depths = np.concatenate(
+            [np.arange(1.0 / near, inv_depths[0] + 0.5 * coarse, -coarse)[:-1], inv_depths]
+        )
     n = np.array([0.0, 0.0, 1.0])
     keep = min(cfg.keep_best, len(refs))
     # All references are filtered at once, stacked in one tall image; each is padded by g mirrored
@@ -144,7 +156,7 @@ def plane_sweep(
         mu_q = cv2.boxFilter(q, -1, (size, size))
         var_q = np.maximum(cv2.boxFilter(q * q, -1, (size, size)) - mu_q * mu_q, 0.0)
         query_stats.append((stack([mu_q] * len(refs)), stack([var_q] * len(refs)), var_q))
-    scores = np.empty((len(windows), cfg.planes, h, w), np.float32)
+    scores = np.empty((len(windows), len(inv_depths), h, w), np.float32)
     for p, inv_d in enumerate(inv_depths):
         views = []
         for ref, T in zip(refs, T_iq, strict=True):
@@ -206,7 +218,7 @@ def winner_take_all(
     curvature = prev + nxt - 2.0 * s0
     interior = (best > 0) & (best < n_planes - 1) & (curvature < -1e-6)
     offset = np.where(interior, 0.5 * (prev - nxt) / np.where(interior, curvature, 1.0), 0.0)
-    inv_depth = inv_depths[best] + np.clip(offset, -0.5, 0.5) * (inv_depths[1] - inv_depths[0])
+    inv_depth = np.interp(best + np.clip(offset, -0.5, 0.5), np.arange(n_planes), inv_depths)
 
     # Uniqueness: best score minus the best score outside a +-2 plane neighbourhood.
     for shift in range(-2, 3):
