@@ -128,7 +128,9 @@ def test_simulated_backbone_is_exact(database: Database, query) -> None:
             "scale_recovery",
             "occupancy",
             "total",
+            "cpu",
         }
+        assert result.timings["cpu"] > 0
     assert sources.count("ground") >= 5, sources
     # Fused map: the boxes' cells are occupied.
     spec = perceiver.map.spec

@@ -162,8 +162,9 @@ class PerceptionResult:
     ``occupancy``: the perceiver's fused map (the live object, after this frame).
     ``references``: database indices used, best match first. ``scale``: metres per backbone
     unit (nan when lost) and ``scale_source`` (ground | fallback | disabled | none).
-    ``z_ground``: anchored floor height (W, metres). ``timings``: seconds per stage
-    (:data:`TIMING_KEYS`).
+    ``z_ground``: anchored floor height (W, metres). ``timings``: wall seconds per stage
+    (:data:`TIMING_KEYS`) and ``cpu``: the process's CPU seconds for the whole call (all
+    threads; less sensitive than wall time to other processes sharing the cores).
     """
 
     status: str
@@ -281,7 +282,7 @@ class Perceiver:
 
     def perceive(self, rgb: NDArray[np.uint8], privileged: Privileged | None = None) -> PerceptionResult:
         """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`."""
-        t_start = time.perf_counter()
+        t_start, cpu_start = time.perf_counter(), time.process_time()
         loc = self._localize(rgb, privileged)
         self.n_frames += 1
         timings = loc.timings
@@ -289,6 +290,7 @@ class Perceiver:
             fallback = self._single_fallback(loc)
             if fallback is None:
                 timings["total"] = time.perf_counter() - t_start
+                timings["cpu"] = time.process_time() - cpu_start
                 return loc
             loc = fallback
         motion, out = loc.motion, loc.backbone
@@ -321,6 +323,7 @@ class Perceiver:
         if not est.ok:
             timings["scale_recovery"] += time.perf_counter() - t0
             timings["total"] = time.perf_counter() - t_start
+            timings["cpu"] = time.process_time() - cpu_start
             return _lost(
                 "no ground",
                 "no ground peak and no ray-implied scale",
@@ -351,6 +354,7 @@ class Perceiver:
         )
         timings["occupancy"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
+        timings["cpu"] = time.process_time() - cpu_start
         return PerceptionResult(
             status="localized",
             reason="",
