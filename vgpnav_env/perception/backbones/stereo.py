@@ -5,11 +5,18 @@ Input: the query and reference images (uint8 RGB, one pinhole camera), each refe
 unknown scale) and sparse query depths at that scale (they bound the sweep). Output: a query
 z-depth (H, W) float32 at the same scale (0 where unknown) and a confidence (H, W) in [0, 1].
 
-The sweep runs over fronto-parallel inverse-depth planes at reduced resolution; each reference
-is warped onto the query per plane and scored by windowed NCC (NaN where it does not see the
-pixel); per pixel the mean of the ``keep_best`` best references counts (occlusion-robust).
-Confidence = matching score * uniqueness * texture * visibility (0 where no reference sees the
-pixel; depth 0 there).
+The sweep runs over fronto-parallel inverse-depth planes at reduced resolution (the sparse-depth
+range, plus coarser planes down to a fraction of the median sparse depth for near walls); each
+reference is warped onto the query per plane and scored by windowed NCC (NaN where it does not
+see the pixel); per pixel the mean of the ``keep_best`` best references counts (occlusions and a
+few references with wrong poses are outvoted). Winner-take-all with a small window gives the
+depth; a second winner with a larger window must agree, else the pixel is not confident (on the
+home build this check let the small window reach the coverage of a 7x7 window at fewer confident
+outliers: Comp -0.009 m at equal Acc). Confidence = matching score * uniqueness * texture *
+visibility (0 where no reference sees the pixel; depth 0 there).
+
+Measured on the home build (benchmarks/dense_depth.py, 5 references, topk retrieval):
+confident coverage 0.60, 10 % outliers, shape-only Acc / Comp 0.062 / 0.069 m.
 """
 
 from __future__ import annotations
@@ -30,7 +37,8 @@ class SweepConfig:
     sparse-depth percentiles widened by ``depth_range_margin``; confidence terms ``min_ncc``,
     ``full_confidence_margin`` (uniqueness), ``min_texture_std`` (grey levels). Window check
     (``check_window`` > 0): a second winner-take-all with that larger window must agree within
-    ``window_agreement`` (inverse depth times the median sparse depth) or the confidence is 0;
+    ``window_agreement`` (inverse depth times the median sparse depth; the check scores every
+    ``check_plane_stride``-th plane) or the confidence is 0;
     agreeing pixels get ``confidence_gain`` times the ``ncc_window`` confidence (clipped to 1).
     Near planes: from ``near_depth_factor`` times the median sparse depth (0 = off) to the depth
     range, ``near_plane_step`` times coarser in inverse depth.
@@ -42,6 +50,7 @@ class SweepConfig:
     ncc_window: int = 5
     check_window: int = 11
     window_agreement: float = 0.08
+    check_plane_stride: int = 2
     confidence_gain: float = 3.0
     depth_range_percentiles: tuple[float, float] = (2.0, 98.0)
     depth_range_margin: tuple[float, float] = (0.7, 1.5)
@@ -61,6 +70,8 @@ class SweepConfig:
             raise ValueError("sweep planes must be >= 3 and ncc_window an odd number >= 3")
         if self.check_window and (self.check_window < 3 or self.check_window % 2 == 0):
             raise ValueError(f"check_window must be 0 (off) or an odd number >= 3, got {self.check_window}")
+        if self.check_plane_stride < 1:
+            raise ValueError(f"check_plane_stride must be >= 1, got {self.check_plane_stride}")
         if self.keep_best < 1:
             raise ValueError(f"keep_best must be >= 1, got {self.keep_best}")
 
@@ -180,6 +191,8 @@ def plane_sweep(
         seen = (~unseen).view(np.uint8)
         products = (warped, warped * warped, stacked_q * warped)
         for k, (size, (mu_q, var_q, _)) in enumerate(zip(windows, query_stats, strict=True)):
+            if k == 1 and p % cfg.check_plane_stride:
+                continue
             mu_w, sq_w, qw = (cv2.boxFilter(x, -1, (size, size)) for x in products)
             ncc = (qw - mu_q * mu_w) / np.sqrt(var_q * np.maximum(sq_w - mu_w * mu_w, 0.0) + 1e-3)
             ncc[~cv2.erode(seen, np.ones((size, size), np.uint8), borderValue=1).view(bool)] = np.nan
@@ -187,7 +200,8 @@ def plane_sweep(
 
     inv_depth, conf_small, visible = winner_take_all(scores[0], inv_depths, query_stats[0][2], cfg)
     if cfg.check_window:
-        inv_check, _, _ = winner_take_all(scores[1], inv_depths, query_stats[1][2], cfg)
+        stride = cfg.check_plane_stride
+        inv_check, _, _ = winner_take_all(scores[1][::stride], inv_depths[::stride], query_stats[1][2], cfg)
         agree = np.abs(inv_depth - inv_check) * np.median(sparse_depths) <= cfg.window_agreement
         conf_small = np.where(agree, np.minimum(conf_small * cfg.confidence_gain, 1.0), 0.0).astype(
             np.float32
