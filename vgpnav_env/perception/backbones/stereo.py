@@ -46,7 +46,7 @@ class SweepConfig:
 
     scale: float = 0.5
     planes: int = 64
-    keep_best: int = 3
+    keep_best: int = 2
     ncc_window: int = 5
     check_window: int = 11
     window_agreement: float = 0.08
