@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from tiny_build import QUERY_HEIGHT, make_tiny_build
 
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
-from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, perceive
+from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, PoseGate, perceive
 from vgpnav_env.perception.retrieval import VladConfig, select_references
 from vgpnav_env.runs import load_run, load_run_depth
 
@@ -262,3 +263,31 @@ def test_second_round_tries_the_next_most_similar_images_when_no_pair_passed(
     assert result.localized and result.references.tolist() == untried
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
+
+
+def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -> None:
+    run, depth = query
+    perceiver = Perceiver(
+        database, make_backbone("simulated", seed=5), config=PerceptionConfig(camera_height=QUERY_HEIGHT)
+    )
+    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
+    perceiver.initialize(run.images[:1], priv[:1])
+    T = run.poses[2]
+    far = T.copy()
+    far[0, 3] += 1.0  # expected 1 m away: the (exact) pose is outside a 0.5 m gate
+    before = perceiver.map.logodds.copy()
+    lost = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(far, 0.5, np.radians(30.0)))
+    assert lost.status == "lost" and lost.reason == "inconsistent motion" and lost.reason in LOST_REASONS
+    assert "1.00 m" in lost.detail and len(lost.points_w) == 0
+    np.testing.assert_array_equal(perceiver.map.logodds, before)
+    # Inside the gate (0.3 m and 20 deg of yaw off): localized and fused as without a gate.
+    near = far.copy()
+    near[0, 3] -= 0.7
+    near[:3, :3] = Rotation.from_euler("z", 20.0, degrees=True).as_matrix() @ T[:3, :3]
+    ok = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(near, 0.5, np.radians(30.0)))
+    assert ok.status == "localized" and errors(ok.T_wc, T)[0] < 0.01
+    assert not np.array_equal(perceiver.map.logodds, before)
+    # A heading outside the gate is rejected too.
+    assert not PoseGate(near, 0.5, np.radians(15.0)).admits(T)
+    with pytest.raises(ValueError, match="max_distance"):
+        PoseGate(T, 0.0, 1.0)

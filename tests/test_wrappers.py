@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -151,4 +153,51 @@ def test_perception_agent_looks_around_until_localized(database):
     obs, _, _, _, info = env.step(policy.act(obs, info))
     assert obs["localized"] == 1
     assert policy.act(obs, info) in (1, 2, 3) and policy.seen and policy.blind == 0
+    env.close()
+
+
+class ShiftedBackbone(FlakyBackbone):
+    """The privileged backbone seeing the world ``shift`` metres along +x: a gross, confident error."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.shift = 0.0
+
+    def __call__(self, query, references, camera, privileged=None, reference_keys=None) -> BackboneOutput:
+        T = privileged.T_wq.copy()
+        T[0, 3] += self.shift
+        return self.inner(query, references, camera, replace(privileged, T_wq=T), reference_keys)
+
+
+@pytest.mark.parametrize("gate", [True, False])
+def test_motion_gate_rejects_a_pose_jump_until_it_persists(database, gate: bool):
+    backbone = ShiftedBackbone()
+    kwargs = {} if gate else {"motion_gate": None}
+    env = VGPNavObservation(
+        gym.make(ENV_ID, scene="home", image_size=(160, 120)), backbone, database=database, **kwargs
+    )
+    obs, _ = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    start = obs["pose"].copy()
+    backbone.shift = 2.0
+    obs, _, _, _, info = env.step(2)  # turn left in place; perception says 2 m along +x
+    if not gate:
+        assert obs["localized"] == 1 and obs["pose"][0] == pytest.approx(start[0] + 2.0, abs=0.05)
+        env.close()
+        return
+    assert obs["localized"] == 0 and info["perception"]["reason"] == "inconsistent motion"
+    np.testing.assert_allclose(obs["pose"], start + np.array([0.0, 0.0, np.radians(15)]), atol=1e-4)
+    before = env.last_result.occupancy.logodds.copy()
+    for n in range(8):  # turning in place does not widen the distance gate: still rejected
+        obs, _, _, _, _ = env.step(3 if n % 2 == 0 else 2)
+        assert obs["localized"] == 0
+    np.testing.assert_array_equal(env.last_result.occupancy.logodds, before)  # nothing fused
+    # The distance gate grows by 0.1 m per forward step (from 0.5 m): a jump that persists is
+    # accepted once the gate reaches it (2 m after 15 steps, earlier if a collision made the
+    # odometry overshoot), so a drifted estimate is re-captured.
+    forward = 0
+    while not obs["localized"] and forward < 20:
+        obs, _, _, _, info = env.step(1)
+        forward += 1
+    assert obs["localized"] == 1 and 10 <= forward <= 16
+    assert obs["pose"][0] == pytest.approx(info["pose"][0] + 2.0, abs=0.05)
     env.close()

@@ -7,7 +7,12 @@ image against the scene's database run and replaces the raw observation by a nav
 
 - ``pose``: estimated (x, y, yaw) of the robot in W (metres, radians), clipped to the map bounds
   plus a margin. While perception is lost the last estimate is carried forward by the commanded
-  discrete motion (nominal odometry: ``forward_step`` ahead, ``turn_step`` turns).
+  discrete motion (nominal odometry: ``forward_step`` ahead, ``turn_step`` turns). With
+  ``motion_gate`` (discrete actions), a perceived pose farther from that odometry prediction than
+  ``max_distance`` m / ``max_yaw_deg`` is rejected as lost before it is fused. Since the last
+  accepted fix the distance grows by ``growth_m`` per forward step and the angle by ``growth_deg``
+  per turn (odometry uncertainty grows with motion, not with time: turning in place to look
+  around does not widen the distance gate), so a drifted estimate is re-captured once it moves.
 - ``goal_rel``: (distance m, bearing rad counter-clockwise from the estimated heading) of the goal.
 - ``map``: egocentric crop of the fused occupancy map (``S`` x ``S`` pixels of ``map_resolution``
   metres, row 0 ahead, columns to the right; 255 occupied, 128 free, 0 unknown), channels first.
@@ -41,13 +46,16 @@ from numpy.typing import NDArray
 from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
 from vgpnav_env.perception.backbones.base import Backbone, Privileged
 from vgpnav_env.perception.database import Database, DatabaseConfig
-from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
+from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult, PoseGate
 
 logger = logging.getLogger(__name__)
 
 #: Databases opened in this process, by (directory, config): opening fits/loads the index and prior.
 _DATABASES: dict[tuple[str, str], Database] = {}
 POSE_MARGIN_M = 5.0
+#: Default odometry gate: (max_distance m, max_yaw_deg, growth m per forward step and growth deg per
+#: turn since the last fix).
+MOTION_GATE = (0.5, 30.0, 0.1, 5.0)
 
 
 def open_database(path: str | Path, config: DatabaseConfig | None = None) -> Database:
@@ -98,6 +106,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         map_resolution: float = 0.1,
         init_yaw_jitter_deg: tuple[float, ...] = (0.0, -1.5, 1.5),
         build_seed: int = 0,
+        motion_gate: tuple[float, float, float, float] | None = MOTION_GATE,
     ) -> None:
         # Recorded for env re-creation from the spec; an open database is recorded by its directory.
         gym.utils.RecordConstructorArgs.__init__(
@@ -110,6 +119,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             map_resolution=map_resolution,
             init_yaw_jitter_deg=init_yaw_jitter_deg,
             build_seed=build_seed,
+            motion_gate=motion_gate,
         )
         gym.Wrapper.__init__(self, env)
         base = env.unwrapped
@@ -123,6 +133,13 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise ValueError("VGPNavObservation needs camera images: make the env with render_rgb=True")
         if not init_yaw_jitter_deg:
             raise ValueError("init_yaw_jitter_deg needs at least one yaw offset (0 = the first view)")
+        if motion_gate is not None and (len(motion_gate) != 4 or min(motion_gate) <= 0):
+            raise ValueError(
+                "motion_gate must be None or (max_distance m, max_yaw_deg, growth m per forward step, "
+                "growth deg per turn), "
+                f"all positive; got {motion_gate}"
+            )
+        self.motion_gate = motion_gate
         if database is None:
             if database_dir is None:
                 database_dir = scene_database_dir(env, build_seed)
@@ -184,39 +201,61 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         result = self.perceiver.initialize(images, privileged)[0]
         self.estimate = np.zeros(3)
         self._have_estimate = False
+        self._moves_since_fix = np.zeros(2)  # forward steps, turns
         return self._observe(obs, info, result, None)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        result = self.perceiver.perceive(obs["rgb"], self._privileged(info["T_wc"], info["depth"]))
-        new_obs, info = self._observe(obs, info, result, action)
+        predicted = self._dead_reckon(action) if self._have_estimate else None
+        if action is not None and self.env.unwrapped.action_mode == "discrete":
+            self._moves_since_fix += (int(action) == 1, int(action) in (2, 3))
+        result = self.perceiver.perceive(
+            obs["rgb"], self._privileged(info["T_wc"], info["depth"]), gate=self._gate(predicted)
+        )
+        new_obs, info = self._observe(obs, info, result, predicted)
         return new_obs, reward, terminated, truncated, info
 
-    def _dead_reckon(self, action: Any) -> None:
+    def _dead_reckon(self, action: Any) -> NDArray[np.float64]:
+        """The estimate moved by the commanded discrete action (unchanged for continuous actions)."""
         base = self.env.unwrapped
-        if action is None or base.action_mode != "discrete":
-            return
-        a = int(action)
         x, y, yaw = self.estimate
+        if action is None or base.action_mode != "discrete":
+            return self.estimate.copy()
+        a = int(action)
         if a == 1:
-            self.estimate = np.array(
-                [x + base.forward_step * np.cos(yaw), y + base.forward_step * np.sin(yaw), yaw]
-            )
-        elif a in (2, 3):
-            self.estimate = np.array(
-                [x, y, float(wrap_angle(yaw + (base.turn_step if a == 2 else -base.turn_step)))]
-            )
+            return np.array([x + base.forward_step * np.cos(yaw), y + base.forward_step * np.sin(yaw), yaw])
+        if a in (2, 3):
+            return np.array([x, y, float(wrap_angle(yaw + (base.turn_step if a == 2 else -base.turn_step)))])
+        return self.estimate.copy()
+
+    def _gate(self, predicted: NDArray[np.float64] | None) -> PoseGate | None:
+        """The odometry gate around ``predicted`` (None: no estimate yet, no gate, or continuous actions)."""
+        base = self.env.unwrapped
+        if predicted is None or self.motion_gate is None or base.action_mode != "discrete":
+            return None
+        distance, yaw_deg, growth_m, growth_deg = self.motion_gate
+        forward, turns = self._moves_since_fix
+        return PoseGate(
+            base.camera_T_wc(predicted),
+            distance + growth_m * forward,
+            float(np.radians(yaw_deg + growth_deg * turns)),
+        )
 
     def _observe(
-        self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult, action: Any
+        self,
+        obs: dict[str, NDArray],
+        info: dict[str, Any],
+        result: PerceptionResult,
+        predicted: NDArray[np.float64] | None,
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         localized = result.localized and result.T_wc is not None
         if localized:
             yaw, _ = camera_yaw_pitch(result.T_wc)
             self.estimate = np.array([result.T_wc[0, 3], result.T_wc[1, 3], yaw])
             self._have_estimate = True
-        elif self._have_estimate:
-            self._dead_reckon(action)
+            self._moves_since_fix = np.zeros(2)
+        elif predicted is not None:
+            self.estimate = predicted
         else:  # never localized in this episode: nothing better than the map centre
             spec = result.occupancy.spec
             centre = np.asarray(spec.origin) + 0.5 * np.asarray(spec.shape[::-1]) * spec.resolution

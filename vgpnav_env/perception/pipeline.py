@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, make_pose, rotation_angle
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, make_pose, rotation_angle, wrap_angle
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone
@@ -51,8 +51,9 @@ from vgpnav_env.perception.scale_recovery import (
 logger = logging.getLogger(__name__)
 
 #: Why a frame is lost: no reference pair passed the backbone; the references' poses disagree
-#: (rotation consensus, ray triangulation); no metric scale (no ground and no ray scale).
-LOST_REASONS = ("too few matches", "no consensus", "no ground")
+#: (rotation consensus, ray triangulation); no metric scale (no ground and no ray scale); the pose
+#: lies outside the caller's :class:`PoseGate` (e.g. odometry since the last fix).
+LOST_REASONS = ("too few matches", "no consensus", "no ground", "inconsistent motion")
 TIMING_KEYS = ("retrieval", "backbone", "motion_averaging", "scale_recovery", "occupancy", "total")
 
 
@@ -150,6 +151,39 @@ class PerceptionConfig:
             scale=ScaleConfig(enabled=scale),
             camera_height=camera_height,
         )
+
+
+@dataclass(frozen=True)
+class PoseGate:
+    """Where the caller expects the camera (e.g. its last fix moved by odometry): a pose whose
+    horizontal position is more than ``max_distance`` metres from ``T_wc``'s, or whose heading
+    (camera yaw) differs by more than ``max_yaw`` radians, is lost ("inconsistent motion") and
+    is not fused into the map. One wrong reference set can place a frame metres away; a robot
+    cannot jump there in one step.
+    """
+
+    T_wc: NDArray[np.float64]
+    max_distance: float
+    max_yaw: float
+
+    def __post_init__(self) -> None:
+        if np.shape(self.T_wc) != (4, 4):
+            raise ValueError(f"PoseGate.T_wc must be a 4x4 pose, got shape {np.shape(self.T_wc)}")
+        if not (self.max_distance > 0 and self.max_yaw > 0):
+            raise ValueError(
+                f"max_distance (m) and max_yaw (rad) must be positive, "
+                f"got {self.max_distance}, {self.max_yaw}"
+            )
+
+    def deviation(self, T_wc: NDArray[np.float64]) -> tuple[float, float]:
+        """(horizontal distance m, absolute heading difference rad) of ``T_wc`` from the gate's pose."""
+        distance = float(np.linalg.norm(T_wc[:2, 3] - self.T_wc[:2, 3]))
+        yaw = abs(float(wrap_angle(camera_yaw_pitch(T_wc)[0] - camera_yaw_pitch(self.T_wc)[0])))
+        return distance, yaw
+
+    def admits(self, T_wc: NDArray[np.float64]) -> bool:
+        distance, yaw = self.deviation(T_wc)
+        return distance <= self.max_distance and yaw <= self.max_yaw
 
 
 @dataclass
@@ -280,8 +314,13 @@ class Perceiver:
             self.anchor.initialize(observations, self.config.camera_height)
         return [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
 
-    def perceive(self, rgb: NDArray[np.uint8], privileged: Privileged | None = None) -> PerceptionResult:
-        """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`."""
+    def perceive(
+        self, rgb: NDArray[np.uint8], privileged: Privileged | None = None, gate: PoseGate | None = None
+    ) -> PerceptionResult:
+        """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`.
+
+        With a ``gate``, a pose outside it is lost ("inconsistent motion"), nothing is fused.
+        """
         t_start, cpu_start = time.perf_counter(), time.process_time()
         loc = self._localize(rgb, privileged)
         self.n_frames += 1
@@ -306,6 +345,22 @@ class Perceiver:
                 T_wc = self._single_pose(T_wc, loc.references, motion, out, est.scale)
             else:
                 est = ScaleEstimate(float("nan"), "none")
+        if gate is not None and not gate.admits(T_wc):
+            distance, yaw = gate.deviation(T_wc)
+            timings["total"] = time.perf_counter() - t_start
+            timings["cpu"] = time.process_time() - cpu_start
+            return _lost(
+                "inconsistent motion",
+                f"pose {distance:.2f} m / {np.degrees(yaw):.0f} deg from the expected one "
+                f"(gate {gate.max_distance:.2f} m / {np.degrees(gate.max_yaw):.0f} deg)",
+                self.map,
+                loc.references,
+                T_wc=T_wc,
+                timings=timings,
+                motion=motion,
+                backbone=out,
+                n_confident_pairs=loc.n_confident_pairs,
+            )
         if not self.anchor.initialized and not (single and not est.ok):
             self.anchor.initialize([(T_wc, None)], self.config.camera_height)
         if not single:
