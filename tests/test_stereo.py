@@ -9,6 +9,7 @@ from backbone_synthetic import corner_views, render
 from scipy.spatial.transform import Rotation
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
+from vgpnav_env.perception.backbones.planar_fill import PlanarFillConfig, planar_fill
 from vgpnav_env.perception.backbones.stereo import SweepConfig, best_mean, plane_sweep, speckles
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
@@ -133,3 +134,35 @@ def test_surfaces_nearer_than_the_sparse_points_are_swept():
         query, [ref, ref], np.stack([T_iq, T_iq]), CAMERA, sparse, SweepConfig(near_depth_factor=0.0)
     )
     assert (conf[inner] > 0.3).mean() < 0.05
+
+
+def test_planar_fill_completes_a_textureless_plane_but_not_a_curved_surface():
+    # Sweep resolution 160x120; left half one flat colour on a slanted plane 1/z = a u + b v + e with
+    # 15 % confident pixels (1 % noise, plus 15 % of them gross outliers), right half another colour
+    # on a strongly curved surface with 30 % confident pixels: only the plane is filled.
+    h, w = 120, 160
+    rng = np.random.default_rng(1)
+    v, u = np.indices((h, w), dtype=np.float64)
+    image = np.zeros((h, w, 3), np.uint8)
+    image[:, : w // 2] = (120, 110, 100)
+    image[:, w // 2 :] = (40, 90, 160)
+    left = u < w // 2
+    plane = 0.4 + 0.002 * u + 0.001 * v
+    curved = 0.5 * (1.0 + 0.4 * np.sin(u / 6.0) * np.sin(v / 6.0))
+    truth = np.where(left, plane, curved)
+    inv_depth = truth * (1.0 + 0.01 * rng.standard_normal((h, w)))
+    confident = rng.random((h, w)) < np.where(left, 0.15, 0.3)
+    outlier = confident & left & (rng.random((h, w)) < 0.15)
+    inv_depth[outlier] = rng.uniform(0.2, 1.0, outlier.sum())
+    inv_depth[~confident] = 1.0
+    confidence = np.where(confident, 0.8, 0.0).astype(np.float32)
+    visible = np.ones((h, w), bool)
+    cfg = PlanarFillConfig()
+    filled_inv, filled_conf = planar_fill(image, inv_depth, confidence, visible, (0.1, 2.0), cfg)
+    # The two columns either side of the colour edge form thin segments of their own (no fit there).
+    holes, right = ~confident & (u < w // 2 - 2), u > w // 2 + 1
+    assert np.all(filled_conf[holes] >= 0.3) and np.all(filled_conf[holes] <= cfg.fill_confidence)
+    np.testing.assert_allclose(filled_inv[holes], plane[holes], rtol=0.01)
+    assert np.all(filled_conf[~confident & right] == 0.0) and np.all(filled_inv[right] == inv_depth[right])
+    np.testing.assert_array_equal(filled_inv[confident], inv_depth[confident])
+    np.testing.assert_array_equal(filled_conf[confident], confidence[confident])

@@ -22,13 +22,14 @@ coverage 0.61, 9 % of confident pixels > 10 % off, shape-only Acc / Comp 0.055 /
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import PinholeCamera
+from vgpnav_env.perception.backbones.planar_fill import PlanarFillConfig, planar_fill
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,8 @@ class SweepConfig:
     agreeing pixels get ``confidence_gain`` times the ``ncc_window`` confidence (clipped to 1).
     Near planes: from ``near_depth_factor`` times the median sparse depth (0 = off) to the depth
     range, ``near_plane_step`` times coarser in inverse depth.
-    Optional speckle removal (``speckle_size`` > 0 pixels at sweep scale)."""
+    Optional speckle removal (``speckle_size`` > 0 pixels at sweep scale) and piecewise-planar
+    completion of unconfident pixels (``planar``, None = off; see :mod:`.planar_fill`)."""
 
     scale: float = 0.5
     planes: int = 64
@@ -63,6 +65,7 @@ class SweepConfig:
     speckle_size: int = 0
     speckle_confidence: float = 0.3
     speckle_max_diff: float = 1.0
+    planar: PlanarFillConfig | None = field(default_factory=PlanarFillConfig)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.scale <= 1.0:
@@ -210,6 +213,10 @@ def plane_sweep(
     if cfg.speckle_size > 0:
         step = abs(inv_depths[1] - inv_depths[0])
         conf_small[speckles(inv_depth, conf_small >= cfg.speckle_confidence, step, cfg)] = 0.0
+    if cfg.planar is not None:
+        colour = cv2.resize(np.ascontiguousarray(query), (w, h), interpolation=cv2.INTER_AREA)
+        inv_range = (float(inv_depths.min()), float(inv_depths.max()))
+        inv_depth, conf_small = planar_fill(colour, inv_depth, conf_small, visible, inv_range, cfg.planar)
     depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
     depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
     conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
