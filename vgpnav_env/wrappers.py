@@ -7,7 +7,9 @@ image against the scene's database run and replaces the raw observation by a nav
 
 - ``pose``: estimated (x, y, yaw) of the robot in W (metres, radians), clipped to the map bounds
   plus a margin. While perception is lost the last estimate is carried forward by the commanded
-  discrete motion (nominal odometry: ``forward_step`` ahead, ``turn_step`` turns). With
+  discrete motion (nominal odometry: ``forward_step`` ahead, ``turn_step`` turns; a forward step
+  after which the camera image did not change -- mean absolute grey difference of a small
+  thumbnail below ``stall_threshold`` levels -- was blocked and moves nothing). With
   ``motion_gate`` (discrete actions), a perceived pose farther from that odometry prediction than
   ``max_distance`` m / ``max_yaw_deg`` is rejected as lost before it is fused. Since the last
   accepted fix the distance grows by ``growth_m`` per forward step and the angle by ``growth_deg``
@@ -38,6 +40,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -56,6 +59,14 @@ POSE_MARGIN_M = 5.0
 #: Default odometry gate: (max_distance m, max_yaw_deg, growth m per forward step and growth deg per
 #: turn since the last fix).
 MOTION_GATE = (0.5, 30.0, 0.1, 5.0)
+#: Mean absolute grey-level change (of a 40x30 thumbnail) below which a forward step was blocked.
+STALL_THRESHOLD = 0.5
+
+
+def _thumbnail(rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+    """A 40x30 grey thumbnail (float grey levels) for detecting a blocked step from pixels."""
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+    return cv2.resize(grey, (40, 30), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
 def open_database(path: str | Path, config: DatabaseConfig | None = None) -> Database:
@@ -107,6 +118,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         init_yaw_jitter_deg: tuple[float, ...] = (0.0, -1.5, 1.5),
         build_seed: int = 0,
         motion_gate: tuple[float, float, float, float] | None = MOTION_GATE,
+        stall_threshold: float = STALL_THRESHOLD,
     ) -> None:
         # Recorded for env re-creation from the spec; an open database is recorded by its directory.
         gym.utils.RecordConstructorArgs.__init__(
@@ -120,6 +132,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             init_yaw_jitter_deg=init_yaw_jitter_deg,
             build_seed=build_seed,
             motion_gate=motion_gate,
+            stall_threshold=stall_threshold,
         )
         gym.Wrapper.__init__(self, env)
         base = env.unwrapped
@@ -140,6 +153,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 f"all positive; got {motion_gate}"
             )
         self.motion_gate = motion_gate
+        if stall_threshold < 0:
+            raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {stall_threshold}")
+        self.stall_threshold = float(stall_threshold)
         if database is None:
             if database_dir is None:
                 database_dir = scene_database_dir(env, build_seed)
@@ -202,10 +218,16 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.estimate = np.zeros(3)
         self._have_estimate = False
         self._moves_since_fix = np.zeros(2)  # forward steps, turns
+        self._thumbnail = _thumbnail(obs["rgb"])
         return self._observe(obs, info, result, None)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
+        thumbnail = _thumbnail(obs["rgb"])
+        stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.stall_threshold
+        self._thumbnail = thumbnail
+        if stalled and action is not None and self.env.unwrapped.action_mode == "discrete":
+            action = 0 if int(action) == 1 else action  # a blocked forward step: the robot stayed
         predicted = self._dead_reckon(action) if self._have_estimate else None
         if action is not None and self.env.unwrapped.action_mode == "discrete":
             self._moves_since_fix += (int(action) == 1, int(action) in (2, 3))
