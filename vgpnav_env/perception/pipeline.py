@@ -335,6 +335,25 @@ class Perceiver:
         motion, out = loc.motion, loc.backbone
         t0 = time.perf_counter()
         T_wc = motion.T_wq
+
+        def lost(reason: str, detail: str, **kw) -> PerceptionResult:
+            """This frame lost after motion averaging (its pose kept for inspection), nothing fused."""
+            timings["scale_recovery"] += time.perf_counter() - t0
+            timings["total"] = time.perf_counter() - t_start
+            timings["cpu"] = time.process_time() - cpu_start
+            return _lost(
+                reason,
+                detail,
+                self.map,
+                loc.references,
+                T_wc=T_wc,
+                timings=timings,
+                motion=motion,
+                backbone=out,
+                n_confident_pairs=loc.n_confident_pairs,
+                **kw,
+            )
+
         single = motion.reason == "single reference" and self.config.scale.enabled
         if single:
             # One reference's translation is only known at the backbone scale: place the camera
@@ -347,19 +366,10 @@ class Perceiver:
                 est = ScaleEstimate(float("nan"), "none")
         if gate is not None and not gate.admits(T_wc):
             distance, yaw = gate.deviation(T_wc)
-            timings["total"] = time.perf_counter() - t_start
-            timings["cpu"] = time.process_time() - cpu_start
-            return _lost(
+            return lost(
                 "inconsistent motion",
                 f"pose {distance:.2f} m / {np.degrees(yaw):.0f} deg from the expected one "
                 f"(gate {gate.max_distance:.2f} m / {np.degrees(gate.max_yaw):.0f} deg)",
-                self.map,
-                loc.references,
-                T_wc=T_wc,
-                timings=timings,
-                motion=motion,
-                backbone=out,
-                n_confident_pairs=loc.n_confident_pairs,
             )
         if not self.anchor.initialized and not (single and not est.ok):
             self.anchor.initialize([(T_wc, None)], self.config.camera_height)
@@ -376,22 +386,8 @@ class Perceiver:
             est = self._check_scale(est, motion.scale_from_rays)
         z_ground = float(self.anchor.z_ground) if self.anchor.initialized else float("nan")
         if not est.ok:
-            timings["scale_recovery"] += time.perf_counter() - t0
-            timings["total"] = time.perf_counter() - t_start
-            timings["cpu"] = time.process_time() - cpu_start
-            return _lost(
-                "no ground",
-                "no ground peak and no ray-implied scale",
-                self.map,
-                loc.references,
-                T_wc=T_wc,
-                z_ground=z_ground,
-                timings=timings,
-                motion=motion,
-                ground=ground,
-                backbone=out,
-                n_confident_pairs=loc.n_confident_pairs,
-            )
+            detail = "no ground peak and no ray-implied scale"
+            return lost("no ground", detail, z_ground=z_ground, ground=ground)
         points_q, _ = self._query_points(out)
         points_q = points_q[points_q[:, 2] * est.scale <= self.config.occupancy.max_depth]
         points_w = recover_metric_points(points_q, T_wc, est.scale)
