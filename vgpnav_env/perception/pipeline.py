@@ -463,7 +463,7 @@ class Perceiver:
         i = int(np.argmax(motion.weights))
         T_wi = self.database.poses[refs[i]]
         T = T_wq.copy()
-        T[:3, 3] = T_wi[:3, 3] + scale * T_wi[:3, :3] @ out.T_iq[i, :3, 3]
+        T[:3, 3] = _centre_along_pair(T_wi, out.T_iq[i], scale)
         return T
 
     def _ground(
@@ -642,7 +642,7 @@ class Perceiver:
                 # Along the pair's ray, at the ground scale of the calibrated camera height.
                 ground = self._ground(out, T, None)
                 if ground.found:
-                    T[:3, 3] += cfg.camera_height / -ground.height_b * T_wi[:3, :3] @ out.T_iq[j, :3, 3]
+                    T[:3, 3] = _centre_along_pair(T_wi, out.T_iq[j], cfg.camera_height / -ground.height_b)
             if any(
                 np.linalg.norm(T[:3, 3] - h[:3, 3]) <= cfg.expand_radius
                 and rotation_angle(T[:3, :3], h[:3, :3]) <= consensus
@@ -667,6 +667,14 @@ class Perceiver:
         if len(new) == 0:
             return np.zeros(0, np.int64)
         return np.concatenate([np.array(keep, np.int64), new])
+
+
+def _centre_along_pair(
+    T_wi: NDArray[np.float64], T_iq: NDArray[np.float64], scale: float
+) -> NDArray[np.float64]:
+    """World camera centre of a query placed by one pair: reference centre plus the pair's
+    translation (backbone units) at ``scale`` metres per unit, rotated into W."""
+    return T_wi[:3, 3] + scale * T_wi[:3, :3] @ T_iq[:3, 3]
 
 
 def _round_rank(out: BackboneOutput, motion: MotionResult) -> tuple[bool, int, float]:
