@@ -19,10 +19,9 @@ from scipy.ndimage import distance_transform_edt
 
 from vgpnav_env.geometry import wrap_angle
 from vgpnav_env.grid import GridSpec, line_of_sight, shortest_path
+from vgpnav_env.robot import FORWARD_STEP, ROBOT_RADIUS, TURN_STEP_DEG, Action
 
 logger = logging.getLogger(__name__)
-
-STOP, FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
 
 
 def inflate(obstacles: NDArray[np.bool_], resolution: float, radius: float) -> NDArray[np.bool_]:
@@ -46,12 +45,12 @@ class AStarAgent:
 
     def __init__(
         self,
-        robot_radius: float = 0.2,
+        robot_radius: float = ROBOT_RADIUS,
         inflation_margin: float = 0.03,
         goal_radius: float = 0.35,
         lookahead: float = 0.5,
-        forward_step: float = 0.25,
-        turn_step_deg: float = 15.0,
+        forward_step: float = FORWARD_STEP,
+        turn_step_deg: float = TURN_STEP_DEG,
         min_progress: float = 0.4,
         off_path_distance: float = 0.5,
     ) -> None:
@@ -78,7 +77,7 @@ class AStarAgent:
         self.replans = 0
         self._plan_key: tuple | None = None
         self._plan_map: NDArray[np.bool_] | None = None
-        self._last_action: int | None = None
+        self._last_action: Action | None = None
         self._last_pose: NDArray[np.float64] | None = None
 
     # -- planning --------------------------------------------------------------------------
@@ -157,15 +156,15 @@ class AStarAgent:
                 return dense[k]
         return dense[min(i + 1, len(dense) - 1)]
 
-    def _turn_or_forward(self, pose: NDArray[np.float64], target: NDArray[np.float64]) -> int:
+    def _turn_or_forward(self, pose: NDArray[np.float64], target: NDArray[np.float64]) -> Action:
         dx, dy = target - pose[:2]
         error = float(wrap_angle(np.arctan2(dy, dx) - pose[2]))
         if abs(error) > 0.5 * self.turn_step:
-            return TURN_LEFT if error > 0 else TURN_RIGHT
-        return FORWARD
+            return Action.TURN_LEFT if error > 0 else Action.TURN_RIGHT
+        return Action.FORWARD
 
-    def act(self, pose: ArrayLike, obstacles: ArrayLike, spec: GridSpec, goal: ArrayLike) -> int:
-        """Next discrete action (0 stop, 1 forward, 2 left, 3 right) from the estimated ``pose``,
+    def act(self, pose: ArrayLike, obstacles: ArrayLike, spec: GridSpec, goal: ArrayLike) -> Action:
+        """Next discrete :class:`~vgpnav_env.robot.Action` from the estimated ``pose``,
         the obstacle grid (bool, ``spec.shape``) and the goal (x, y)."""
         pose = np.asarray(pose, float)
         goal = np.asarray(goal, float)[:2]
@@ -181,7 +180,7 @@ class AStarAgent:
             p for p in self.blocked_points if np.linalg.norm(p - pose[:2]) > self.robot_radius
         ]
         blocked = False
-        if self._last_action == FORWARD and self._last_pose is not None:
+        if self._last_action == Action.FORWARD and self._last_pose is not None:
             moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
             if moved < self.min_progress * self.forward_step:
                 ahead = self.robot_radius + 0.5 * spec.resolution
@@ -194,9 +193,9 @@ class AStarAgent:
 
     def _decide(
         self, pose: NDArray, obstacles: NDArray[np.bool_], spec: GridSpec, goal: NDArray, blocked: bool
-    ) -> int:
+    ) -> Action:
         if np.linalg.norm(goal - pose[:2]) <= self.goal_radius:
-            return STOP
+            return Action.STOP
         key = (spec, tuple(goal))
         changed = (
             self._plan_map is None or key != self._plan_key or not np.array_equal(obstacles, self._plan_map)
@@ -209,7 +208,7 @@ class AStarAgent:
             self.plan(pose, obstacles, spec, goal)
             self._plan_key, self._plan_map = key, obstacles.copy()
         if self.path is None:  # off the map: head for the goal, turning away after a bump
-            return TURN_LEFT if blocked else self._turn_or_forward(pose, goal)
+            return Action.TURN_LEFT if blocked else self._turn_or_forward(pose, goal)
         if np.linalg.norm(self.path[-1] - pose[:2]) < 0.5 * self.forward_step:
-            return STOP  # at the reachable point closest to an unreachable goal
+            return Action.STOP  # at the reachable point closest to an unreachable goal
         return self._turn_or_forward(pose, self._waypoint(pose[:2]))

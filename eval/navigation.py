@@ -24,10 +24,11 @@ import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
-from vgpnav_env.agents.astar import TURN_LEFT, AStarAgent
+from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.cli import seed_arg, size_arg
 from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.robot import Action
 
 logger = logging.getLogger(__name__)
 
@@ -69,7 +70,7 @@ class PerceptionAStar:
         self.blind = 0  # consecutive frames without localization
         self.searched = 0  # look-around turns in the current blind spell
 
-    def act(self, obs: dict[str, Any], info: dict[str, Any]) -> int:
+    def act(self, obs: dict[str, Any], info: dict[str, Any]) -> Action:
         if int(np.asarray(obs["localized"]).reshape(-1)[0]):
             self.seen, self.blind, self.searched = True, 0, 0
         else:
@@ -77,7 +78,7 @@ class PerceptionAStar:
         looking = self.blind > self.max_blind_steps and self.searched < self.turns_per_circle
         if not self.seen or looking:
             self.searched += int(self.seen)
-            return TURN_LEFT
+            return Action.TURN_LEFT
         x, y, yaw = np.asarray(obs["pose"], float)
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])

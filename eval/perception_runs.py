@@ -38,12 +38,13 @@ from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
+from vgpnav_env.robot import CAMERA_HEIGHT
 from vgpnav_env.runs import Build, load_build, load_run_depth
 
 logger = logging.getLogger(__name__)
 
 #: Nominal camera-to-base height of the query runs (metres), the calibrated anchor.
-QUERY_CAMERA_HEIGHT = 1.2
+QUERY_CAMERA_HEIGHT = CAMERA_HEIGHT
 BACKBONE_CHOICES = ("classical", "simulated")
 #: (translation metres, rotation degrees) thresholds of the recall metrics.
 RECALL_THRESHOLDS = {

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vgpnav_env.grid import GridSpec
+from vgpnav_env.robot import OBSTACLE_MIN, ROBOT_RADIUS
 from vgpnav_env.scenes.primitives import PRIMITIVES
 from vgpnav_env.scenes.spec import ObjectSpec, SceneSpec, WallSpec
 
@@ -29,7 +30,7 @@ def footprint(o: ObjectSpec) -> NDArray[np.float64]:
     return local @ np.array([[c, s], [-s, c]]) + (o.x, o.y)
 
 
-def blocks(o: ObjectSpec, max_height: float = 1.5, min_height: float = 0.15) -> bool:
+def blocks(o: ObjectSpec, max_height: float = 1.5, min_height: float = OBSTACLE_MIN) -> bool:
     """Whether an object occupies the height band [min_height, max_height] the robot sweeps."""
     if o.kind in PASSABLE_KINDS:
         return False
@@ -71,7 +72,7 @@ def _fill(mask: NDArray[np.uint8], grid: GridSpec, polys: Iterable[NDArray]) -> 
 def navigable_grid(
     spec: SceneSpec,
     objects: Iterable[ObjectSpec],
-    robot_radius: float = 0.2,
+    robot_radius: float = ROBOT_RADIUS,
     resolution: float = 0.05,
 ) -> tuple[GridSpec, NDArray[np.bool_], NDArray[np.bool_]]:
     """(grid, inside-rooms mask, navigable mask): free cells at least ``robot_radius`` from obstacles."""
@@ -87,7 +88,10 @@ def navigable_grid(
 
 
 def connectivity_report(
-    spec: SceneSpec, objects: Iterable[ObjectSpec], robot_radius: float = 0.2, resolution: float = 0.05
+    spec: SceneSpec,
+    objects: Iterable[ObjectSpec],
+    robot_radius: float = ROBOT_RADIUS,
+    resolution: float = 0.05,
 ) -> tuple[list[str], float]:
     """(rooms with no navigable cell in the main component, fraction of navigable cells outside it)."""
     grid, _, nav = navigable_grid(spec, objects, robot_radius, resolution)

@@ -20,7 +20,8 @@ from vgpnav_env.scenes.freespace import blocks, connectivity_report, footprint
 from vgpnav_env.scenes.primitives import PRIMITIVES
 from vgpnav_env.scenes.spec import DoorSpec, LayoutEdit, ObjectSpec, RoomSpec, SceneError, SceneSpec, WallSpec
 
-ROBOT_RADIUS = 0.25  # clearance used when accepting placements (passages >= 0.5 m + discretisation)
+#: Clearance (m) of the free-space check when accepting placements (passages >= 0.5 m + discretisation).
+PLACEMENT_CLEARANCE = 0.25
 MAX_LOST = 0.08  # largest fraction of navigable cells allowed outside the main component
 
 
@@ -506,7 +507,7 @@ class _Placer:
         return True
 
     def connected(self, objects: list[ObjectSpec]) -> bool:
-        lost_rooms, lost = connectivity_report(self.stub, objects, ROBOT_RADIUS, 0.1)
+        lost_rooms, lost = connectivity_report(self.stub, objects, PLACEMENT_CLEARANCE, 0.1)
         return not lost_rooms and lost <= MAX_LOST
 
     def place(

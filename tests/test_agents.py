@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from vgpnav_env.agents.astar import FORWARD, STOP, TURN_LEFT, TURN_RIGHT, AStarAgent, inflate
+from vgpnav_env.agents.astar import AStarAgent, inflate
 from vgpnav_env.grid import GridSpec
+from vgpnav_env.robot import Action, action_path
+
+STOP, FORWARD, TURN_LEFT, TURN_RIGHT = Action
 
 RES = 0.05
 RADIUS = 0.2
@@ -25,7 +28,7 @@ def room(with_wall: bool = True) -> tuple[np.ndarray, GridSpec]:
 
 
 class KinematicRobot:
-    """Executes discrete actions exactly; a forward step stops where the hull would touch ``occ``."""
+    """Executes discrete actions exactly; a motion stops where the hull would touch ``occ``."""
 
     def __init__(self, occ: np.ndarray, spec: GridSpec, pose) -> None:
         self.clearance = distance_transform_edt(~occ) * spec.resolution
@@ -39,17 +42,14 @@ class KinematicRobot:
         return bool(self.clearance[r, c] > RADIUS)
 
     def step(self, action: int) -> None:
-        x, y, yaw = self.pose
-        if action == FORWARD:
-            for _ in range(5):
-                nxt = np.array([x, y]) + 0.05 * np.array([np.cos(yaw), np.sin(yaw)])
-                if not self.free(nxt):
+        motion = action_path(self.pose, action)  # the robot's motion model, checked every 1/5
+        if motion is not None:
+            for s in np.linspace(0.2, 1.0, 5):
+                nxt = motion[0](s)
+                if not self.free(nxt[:2]):
                     self.collisions += 1
                     break
-                x, y = nxt
-        elif action in (TURN_LEFT, TURN_RIGHT):
-            yaw += np.radians(15) * (1 if action == TURN_LEFT else -1)
-        self.pose = np.array([x, y, yaw])
+                self.pose = nxt
         self.history.append(self.pose[:2])
 
 

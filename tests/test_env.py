@@ -6,8 +6,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from vgpnav_env.envs.robot import PlanarRobot, add_robot, arc_path, straight_path, turn_path
+from vgpnav_env.envs.body import PlanarRobot, add_robot
 from vgpnav_env.geometry import camera_yaw_pitch
+from vgpnav_env.robot import arc_path, straight_path, turn_path
 from vgpnav_env.scenes.model import build_mjspec
 
 

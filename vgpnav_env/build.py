@@ -30,6 +30,7 @@ from tqdm import tqdm
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.groundtruth import ground_truth_map
 from vgpnav_env.render import MujocoRenderer
+from vgpnav_env.robot import ROBOT_HEIGHT, ROBOT_RADIUS
 from vgpnav_env.runs import (
     BUILD_FORMAT,
     BUILD_VERSION,
@@ -60,10 +61,8 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_SIZE = (320, 240)
 MAX_SIZE = (1920, 1080)
-#: Ground-truth grid used to plan trajectories (metres, robot radius / height of DESIGN.md).
+#: Ground-truth grid used to plan trajectories (metres; robot radius / height of ``vgpnav_env.robot``).
 GRID_RESOLUTION = 0.05
-ROBOT_RADIUS = 0.2
-ROBOT_HEIGHT = 1.3
 #: Trajectory parameters per run kind (keyword arguments of ``coverage_trajectory``).
 TRAJECTORIES: dict[str, dict[str, Any]] = {
     "database": {

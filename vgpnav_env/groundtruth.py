@@ -1,9 +1,10 @@
 """Ground truth from a scene's meshes: dense surface points and the 2D navigation grid.
 
 Occupancy by height (DESIGN.md): a cell is an *obstacle* if any surface lies above it at a
-height in the obstacle band (0.15 m to the robot height by default); it is *floor* if an
-upward-facing surface lies within ``floor_tolerance`` of z = 0 over it; *free* = floor and not
-obstacle; *navigable* = free cells where the robot disc fits (free eroded by the robot radius).
+height in the obstacle band (by default the robot's: ``vgpnav_env.robot.OBSTACLE_MIN`` = 0.15 m to
+the robot height); it is *floor* if an upward-facing surface lies within ``floor_tolerance`` of
+z = 0 over it; *free* = floor and not obstacle; *navigable* = free cells where the robot disc
+fits (free eroded by the robot radius).
 
 Obstacles come from two sources: densely sampled surfaces (several points per cell even on
 thin vertical walls, so walls are continuous obstacle lines) and the filled footprints of the
@@ -24,6 +25,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from vgpnav_env.grid import GridSpec, erode, largest_component
+from vgpnav_env.robot import FLOOR_TOLERANCE, OBSTACLE_MIN, ROBOT_HEIGHT, ROBOT_RADIUS
 from vgpnav_env.scenes.scene import Scene
 
 logger = logging.getLogger(__name__)
@@ -160,11 +162,11 @@ _GT_CACHE: weakref.WeakKeyDictionary[Scene, dict[tuple, GroundTruthMap]] = weakr
 def ground_truth_map(
     scene: Scene,
     resolution: float = 0.05,
-    robot_radius: float = 0.2,
-    robot_height: float = 1.3,
-    obstacle_band: tuple[float, float | None] = (0.15, None),
+    robot_radius: float = ROBOT_RADIUS,
+    robot_height: float = ROBOT_HEIGHT,
+    obstacle_band: tuple[float, float | None] = (OBSTACLE_MIN, None),
     *,
-    floor_tolerance: float = 0.05,
+    floor_tolerance: float = FLOOR_TOLERANCE,
     seed: int = 0,
 ) -> GroundTruthMap:
     """Occupancy, floor, free and navigable grids of ``scene`` (cached in-process).

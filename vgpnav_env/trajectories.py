@@ -21,12 +21,14 @@ from skimage.graph import MCP_Geometric
 from vgpnav_env import grid
 from vgpnav_env.geometry import camera_pose, wrap_angle
 from vgpnav_env.grid import GridSpec, largest_component
+from vgpnav_env.robot import CAMERA_HEIGHT
 
 #: Bumped whenever the planner's output for given arguments changes (invalidates cached builds).
 TRAJECTORY_VERSION = 2
-#: Camera height (mean, half-range) in metres and downward pitch range in degrees, per DESIGN.md.
+#: Camera height (mean, half-range) in metres and downward pitch range in degrees, per DESIGN.md
+#: (queries: the robot's camera height).
 DATABASE_HEIGHT = (1.5, 0.1)
-QUERY_HEIGHT = (1.2, 0.05)
+QUERY_HEIGHT = (CAMERA_HEIGHT, 0.05)
 PITCH_RANGE_DEG = (15.0, 30.0)
 #: Paths and cover points prefer cells at least this far (metres) inside the navigable area.
 CLEARANCE_CAP = 0.5

@@ -50,6 +50,7 @@ from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
 from vgpnav_env.perception.backbones.base import Backbone, Privileged
 from vgpnav_env.perception.database import Database, DatabaseConfig
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult, PoseGate
+from vgpnav_env.robot import Action, predict_pose
 
 logger = logging.getLogger(__name__)
 
@@ -208,12 +209,11 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.perceiver.reset()
         pose = np.asarray(info["pose"], float)
         images, privileged = [obs["rgb"]], [self._privileged(info["T_wc"], info["depth"])]
-        renderer = base._renderer
         for dyaw in self.init_yaw_jitter[1:]:
-            T_wc = base.camera_T_wc(pose + np.array([0.0, 0.0, dyaw]))
-            frame = renderer.render(T_wc)
+            view = pose + np.array([0.0, 0.0, dyaw])
+            frame = base.render_view(view)
             images.append(frame.rgb)
-            privileged.append(self._privileged(T_wc, frame.depth))
+            privileged.append(self._privileged(base.camera_T_wc(view), frame.depth))
         result = self.perceiver.initialize(images, privileged)[0]
         self.estimate = np.zeros(3)
         self._have_estimate = False
@@ -227,10 +227,11 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.stall_threshold
         self._thumbnail = thumbnail
         if stalled and action is not None and self.env.unwrapped.action_mode == "discrete":
-            action = 0 if int(action) == 1 else action  # a blocked forward step: the robot stayed
+            action = Action.STOP if action == Action.FORWARD else action  # blocked: the robot stayed
         predicted = self._dead_reckon(action) if self._have_estimate else None
         if action is not None and self.env.unwrapped.action_mode == "discrete":
-            self._moves_since_fix += (int(action) == 1, int(action) in (2, 3))
+            turn = action in (Action.TURN_LEFT, Action.TURN_RIGHT)
+            self._moves_since_fix += (action == Action.FORWARD, turn)
         result = self.perceiver.perceive(
             obs["rgb"], self._privileged(info["T_wc"], info["depth"]), gate=self._gate(predicted)
         )
@@ -240,15 +241,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def _dead_reckon(self, action: Any) -> NDArray[np.float64]:
         """The estimate moved by the commanded discrete action (unchanged for continuous actions)."""
         base = self.env.unwrapped
-        x, y, yaw = self.estimate
         if action is None or base.action_mode != "discrete":
             return self.estimate.copy()
-        a = int(action)
-        if a == 1:
-            return np.array([x + base.forward_step * np.cos(yaw), y + base.forward_step * np.sin(yaw), yaw])
-        if a in (2, 3):
-            return np.array([x, y, float(wrap_angle(yaw + (base.turn_step if a == 2 else -base.turn_step)))])
-        return self.estimate.copy()
+        return predict_pose(self.estimate, action, base.forward_step, base.turn_step)
 
     def _gate(self, predicted: NDArray[np.float64] | None) -> PoseGate | None:
         """The odometry gate around ``predicted`` (None: no estimate yet, no gate, or continuous actions)."""

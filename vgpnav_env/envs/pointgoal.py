@@ -12,21 +12,32 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import ArrayLike, NDArray
 
+from vgpnav_env.envs.body import PlanarRobot, add_robot
 from vgpnav_env.envs.episodes import Episode, GeodesicField, sample_episode
-from vgpnav_env.envs.robot import PlanarRobot, add_robot, arc_path, straight_path, turn_path
 from vgpnav_env.envs.topdown import TopDownMap
-from vgpnav_env.geometry import PinholeCamera, camera_pose
+from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.grid import largest_component, path_length, shortest_path
 from vgpnav_env.groundtruth import GroundTruthMap, ground_truth_map
-from vgpnav_env.render import MujocoRenderer
+from vgpnav_env.render import Frame, MujocoRenderer
+from vgpnav_env.robot import (
+    CAMERA_HEIGHT,
+    CAMERA_PITCH_DEG,
+    FORWARD_STEP,
+    FOVY_DEG,
+    ROBOT_HEIGHT,
+    ROBOT_RADIUS,
+    TURN_STEP_DEG,
+    Action,
+    action_path,
+    camera_T_wc,
+    velocity_path,
+)
 from vgpnav_env.scenes import load_scene
 from vgpnav_env.scenes.model import build_mjspec
 from vgpnav_env.scenes.scene import Scene
 
 logger = logging.getLogger(__name__)
 
-STOP, FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
-ACTION_NAMES = ("stop", "forward", "turn_left", "turn_right")
 SUCCESS_REWARD = 2.5
 STEP_PENALTY = 0.01
 #: ``render()`` scales the camera view by an integer factor to at least this many pixels high.
@@ -85,8 +96,9 @@ class PointGoalEnv(gym.Env):
     """Drive a planar robot to a goal point using only its camera (Gymnasium, point-goal).
 
     ## Action space
-    ``action_mode="discrete"`` (default): ``Discrete(4)`` = {0 stop, 1 forward ``forward_step`` m,
-    2 turn left ``turn_step_deg``, 3 turn right ``turn_step_deg``}.
+    ``action_mode="discrete"`` (default): ``Discrete(4)`` = :class:`~vgpnav_env.robot.Action`
+    {0 stop, 1 forward ``forward_step`` m, 2 turn left ``turn_step_deg``, 3 turn right
+    ``turn_step_deg``}, moving as :func:`~vgpnav_env.robot.action_path` unless blocked.
     ``action_mode="continuous"``: ``Box(-1, 1, (3,), float32)`` = (linear speed, turn rate, stop):
     the robot moves along a unicycle arc for ``dt`` seconds at ``v = a[0] * max_linear_speed`` m/s
     (negative drives backwards) and ``omega = a[1] * max_angular_speed`` rad/s (counter-clockwise
@@ -136,14 +148,14 @@ class PointGoalEnv(gym.Env):
         layout: str = "changed",
         render_mode: str | None = None,
         image_size: tuple[int, int] = (320, 240),
-        fovy_deg: float = 60.0,
-        camera_height: float = 1.2,
-        camera_pitch_deg: float = 20.0,
-        robot_radius: float = 0.2,
-        robot_height: float = 1.3,
+        fovy_deg: float = FOVY_DEG,
+        camera_height: float = CAMERA_HEIGHT,
+        camera_pitch_deg: float = CAMERA_PITCH_DEG,
+        robot_radius: float = ROBOT_RADIUS,
+        robot_height: float = ROBOT_HEIGHT,
         action_mode: str = "discrete",
-        forward_step: float = 0.25,
-        turn_step_deg: float = 15.0,
+        forward_step: float = FORWARD_STEP,
+        turn_step_deg: float = TURN_STEP_DEG,
         dt: float = 0.25,
         max_linear_speed: float = 1.0,
         max_angular_speed_deg: float = 60.0,
@@ -232,8 +244,17 @@ class PointGoalEnv(gym.Env):
 
     def camera_T_wc(self, pose: ArrayLike | None = None) -> NDArray[np.float64]:
         """OpenCV camera pose ``T_wc`` of the robot at ``pose`` (default: the current pose)."""
-        x, y, yaw = self.robot.pose if pose is None else np.asarray(pose, float)
-        return camera_pose([x, y, self.camera_height], float(yaw), self.camera_pitch)
+        return camera_T_wc(self.robot.pose if pose is None else pose, self.camera_height, self.camera_pitch)
+
+    def render_view(self, pose: ArrayLike | None = None) -> Frame:
+        """The robot camera's RGB and z-depth at ``pose`` (x, y, yaw; default: the current pose),
+        without moving the robot (e.g. extra views for a wrapper that initialises standing still)."""
+        return self._camera_renderer().render(self.camera_T_wc(pose))
+
+    def _camera_renderer(self) -> MujocoRenderer:
+        if self._renderer is None:  # created lazily: GL state must live in the process that renders
+            self._renderer = MujocoRenderer(self.world.model, self.camera, data=self.robot.data)
+        return self._renderer
 
     def set_overlay(
         self,
@@ -307,35 +328,30 @@ class PointGoalEnv(gym.Env):
         """Apply ``action``; returns (stop requested, blocked)."""
         pose = self.robot.pose
         if self.action_mode == "discrete":
-            a = int(action)
-            if a == STOP:
+            motion = action_path(pose, action, self.forward_step, self.turn_step, self.robot_radius)
+            if motion is None:
                 return True, False
-            if a == FORWARD:
-                return False, self.robot.move_along(
-                    straight_path(pose, self.forward_step), self.forward_step
-                )[1]
-            angle = self.turn_step if a == TURN_LEFT else -self.turn_step
-            return False, self.robot.move_along(turn_path(pose, angle), abs(angle) * self.robot_radius)[1]
+            return False, self.robot.move_along(*motion)[1]
         a = np.asarray(action, float)
         if a[2] > 0.0:
             return True, False
         v, omega = a[0] * self.max_linear_speed, a[1] * self.max_angular_speed
-        length = abs(v) * self.dt + abs(omega) * self.dt * self.robot_radius
+        path, length = velocity_path(pose, v, omega, self.dt, self.robot_radius)
         if length == 0.0:
             return False, False
-        return False, self.robot.move_along(arc_path(pose, v, omega, self.dt), length)[1]
+        return False, self.robot.move_along(path, length)[1]
 
     def _check_action(self, action: Any) -> None:
         if self.action_mode == "discrete":
             ok = (
                 np.ndim(action) == 0
                 and np.issubdtype(np.asarray(action).dtype, np.integer)
-                and 0 <= action < 4
+                and 0 <= action < len(Action)
             )
             if not ok:
+                names = ", ".join(f"{a.value} {a.name.lower().replace('_', ' ')}" for a in Action)
                 raise ValueError(
-                    f"invalid action {action!r}: discrete actions are integers 0-3 "
-                    f"(0 stop, 1 forward, 2 turn left, 3 turn right)"
+                    f"invalid action {action!r}: discrete actions are integers 0-{len(Action) - 1} ({names})"
                 )
             return
         a = np.asarray(action, float)
@@ -371,9 +387,7 @@ class PointGoalEnv(gym.Env):
     # -- observation, info, rendering ---------------------------------------------------------
     def _observe(self) -> dict[str, NDArray]:
         if self.render_rgb:
-            if self._renderer is None:
-                self._renderer = MujocoRenderer(self.world.model, self.camera, data=self.robot.data)
-            frame = self._renderer.render(self.camera_T_wc())
+            frame = self.render_view()
             self._rgb, self._depth = frame.rgb, frame.depth
         return {"rgb": self._rgb.copy(), "goal": np.asarray(self.episode.goal, np.float32)}
 
@@ -424,9 +438,7 @@ class PointGoalEnv(gym.Env):
             raise RuntimeError("render() called before reset()")
         view = self._rgb
         if not self.render_rgb:
-            if self._renderer is None:
-                self._renderer = MujocoRenderer(self.world.model, self.camera, data=self.robot.data)
-            view = self._renderer.render_rgb(self.camera_T_wc())
+            view = self._camera_renderer().render_rgb(self.camera_T_wc())
         k = max(1, int(np.ceil(RENDER_MIN_HEIGHT / view.shape[0])))
         view = np.repeat(np.repeat(view, k, axis=0), k, axis=1)
         return np.concatenate([view, self.top_down(view.shape[0])], axis=1)

@@ -46,6 +46,7 @@ from vgpnav_env.perception.backbones.classical import (
 from vgpnav_env.perception.occupancy import LogOddsMap
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex
 from vgpnav_env.perception.scale_recovery import ground_peak
+from vgpnav_env.robot import CAMERA_HEIGHT
 from vgpnav_env.runs import Run, RunFormatError, load_run, run_fingerprint
 
 logger = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ class DatabaseConfig:
     prior_min_confidence: float = 0.3
     prior_max_depth: float = 5.0
     prior_point_stride: int = 2
-    obstacle_max: float = 1.2
+    obstacle_max: float = CAMERA_HEIGHT
     prior_clamp: float = 2.0
     feature_cache_size: int = 64
     store_features: bool = True

@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import map_coordinates
 
 from vgpnav_env.grid import GridSpec
+from vgpnav_env.robot import FLOOR_TOLERANCE, OBSTACLE_MIN
 
 #: Egocentric crop encoding.
 UNKNOWN, FREE, OCCUPIED = 0, 128, 255
@@ -32,8 +33,8 @@ def classify_points(
     points_w: ArrayLike,
     z_ground: float,
     camera_height: float,
-    free_tol: float = 0.05,
-    obstacle_min: float = 0.15,
+    free_tol: float = FLOOR_TOLERANCE,
+    obstacle_min: float = OBSTACLE_MIN,
 ) -> PointClasses:
     """Free-ground and obstacle masks of world points (N, 3) by height above ``z_ground`` (m)."""
     P = np.asarray(points_w, float).reshape(-1, 3)
@@ -135,8 +136,8 @@ class LogOddsMap:
         z_ground: float,
         camera_height: float,
         camera_xy: ArrayLike | None = None,
-        free_tol: float = 0.05,
-        obstacle_min: float = 0.15,
+        free_tol: float = FLOOR_TOLERANCE,
+        obstacle_min: float = OBSTACLE_MIN,
     ) -> PointClasses:
         """Fuse one frame of metric world points (N, 3); returns their classes."""
         P = np.asarray(points_w, float).reshape(-1, 3)

@@ -47,6 +47,7 @@ from vgpnav_env.perception.scale_recovery import (
     reconstruction_points,
     recover_metric_points,
 )
+from vgpnav_env.robot import CAMERA_HEIGHT, FLOOR_TOLERANCE, OBSTACLE_MIN
 
 logger = logging.getLogger(__name__)
 
@@ -66,8 +67,8 @@ class OccupancyConfig:
     ``max_depth`` are used, every ``point_stride``-th pixel in both directions.
     """
 
-    free_tol: float = 0.05
-    obstacle_min: float = 0.15
+    free_tol: float = FLOOR_TOLERANCE
+    obstacle_min: float = OBSTACLE_MIN
     min_confidence: float = 0.3
     max_depth: float = 5.0
     point_stride: int = 2
@@ -119,7 +120,7 @@ class PerceptionConfig:
     averaging: MotionAveragingConfig = field(default_factory=MotionAveragingConfig)
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
-    camera_height: float = 1.2
+    camera_height: float = CAMERA_HEIGHT
     scale_check_ratio: float | None = 1.5
     single_fallback_confidence: float | None = 0.15
     expand_below_inliers: int | None = 3
@@ -142,7 +143,7 @@ class PerceptionConfig:
         averaging: str = "weighted",
         scale: bool = True,
         k: int = 10,
-        camera_height: float = 1.2,
+        camera_height: float = CAMERA_HEIGHT,
     ) -> PerceptionConfig:
         """The default config with the three ablation switches set (and ``k`` references)."""
         return cls(

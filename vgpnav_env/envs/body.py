@@ -1,21 +1,21 @@
-"""The planar robot: a MuJoCo body (slide x, slide y, hinge yaw) with a hidden cylinder, and
+"""The robot's MuJoCo body (slide x, slide y, hinge yaw) with a hidden cylinder, and
 collision-checked motion through MuJoCo contacts.
 
 The robot cylinder spans heights [``clearance``, ``height``] above the floor (the same band the
-ground-truth occupancy calls obstacles), lives in geom group 3 (hidden from the robot's camera) and
-collides with every geom whose ``contype``/``conaffinity`` is 1. Poses are (x, y, yaw) in W, metres
-and radians, yaw counter-clockwise from +x.
+ground-truth occupancy calls obstacles; defaults from :mod:`vgpnav_env.robot`), lives in geom
+group 3 (hidden from the robot's camera) and collides with every geom whose
+``contype``/``conaffinity`` is 1. Poses are (x, y, yaw) in W, metres and radians, yaw
+counter-clockwise from +x; motions are paths of :mod:`vgpnav_env.robot`.
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import mujoco
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from vgpnav_env.geometry import wrap_angle
+from vgpnav_env.robot import OBSTACLE_MIN, ROBOT_HEIGHT, ROBOT_RADIUS, Path
 
 ROBOT_BODY = "vgpnav_robot"
 ROBOT_GEOM = "vgpnav_robot_hull"
@@ -27,7 +27,12 @@ SAMPLE_SPACING = 0.05
 BISECTION_STEPS = 6
 
 
-def add_robot(spec: mujoco.MjSpec, radius: float = 0.2, height: float = 1.3, clearance: float = 0.15) -> None:
+def add_robot(
+    spec: mujoco.MjSpec,
+    radius: float = ROBOT_RADIUS,
+    height: float = ROBOT_HEIGHT,
+    clearance: float = OBSTACLE_MIN,
+) -> None:
     """Add the robot body (planar joints + hidden collision cylinder) to a scene's ``MjSpec``."""
     if not 0.0 < radius < 2.0:
         raise ValueError(f"robot radius must be in (0, 2) metres, got {radius}")
@@ -60,7 +65,7 @@ class PlanarRobot:
             self._qpos = np.array([model.jnt_qposadr[model.joint(n).id] for n in _JOINTS])
             self._geom = model.geom(ROBOT_GEOM).id
         except KeyError as e:
-            raise ValueError("model has no robot body; build it with envs.robot.add_robot") from e
+            raise ValueError("model has no robot body; build it with envs.body.add_robot") from e
 
     @property
     def pose(self) -> NDArray[np.float64]:
@@ -89,7 +94,7 @@ class PlanarRobot:
         g1, g2, dist = c.geom1[:n], c.geom2[:n], c.dist[:n]
         return bool(np.any(((g1 == self._geom) | (g2 == self._geom)) & (dist < 0.0)))
 
-    def move_along(self, path: Callable[[float], NDArray[np.float64]], length: float) -> tuple[float, bool]:
+    def move_along(self, path: Path, length: float) -> tuple[float, bool]:
         """Follow ``path(s)`` (pose at s in [0, 1], ``path(0)`` = current pose) as far as it is free.
 
         Samples every ``SAMPLE_SPACING`` metres of ``length`` (path length, metres; rotations count
@@ -113,31 +118,3 @@ class PlanarRobot:
                 return lo, True
             free = s
         return 1.0, False
-
-
-def straight_path(pose: ArrayLike, distance: float) -> Callable[[float], NDArray[np.float64]]:
-    """Translation by ``distance`` metres along the heading of ``pose``."""
-    x, y, yaw = np.asarray(pose, float)
-    d = np.array([np.cos(yaw), np.sin(yaw), 0.0]) * distance
-    return lambda s: np.array([x, y, yaw]) + s * d
-
-
-def turn_path(pose: ArrayLike, angle: float) -> Callable[[float], NDArray[np.float64]]:
-    """Rotation in place by ``angle`` radians (counter-clockwise positive)."""
-    x, y, yaw = np.asarray(pose, float)
-    return lambda s: np.array([x, y, yaw + s * angle])
-
-
-def arc_path(pose: ArrayLike, v: float, omega: float, dt: float) -> Callable[[float], NDArray[np.float64]]:
-    """Unicycle motion at constant linear speed ``v`` (m/s) and turn rate ``omega`` (rad/s) for ``dt`` s."""
-    x, y, yaw = np.asarray(pose, float)
-
-    def at(s: float) -> NDArray[np.float64]:
-        t = s * dt
-        if abs(omega) < 1e-9:
-            return np.array([x + v * t * np.cos(yaw), y + v * t * np.sin(yaw), yaw])
-        r = v / omega
-        yaw_t = yaw + omega * t
-        return np.array([x + r * (np.sin(yaw_t) - np.sin(yaw)), y - r * (np.cos(yaw_t) - np.cos(yaw)), yaw_t])
-
-    return at
