@@ -24,6 +24,7 @@ from typing import Any
 import gymnasium as gym
 
 from vgpnav_env.cli import seed_arg
+from vgpnav_env.perception.backbones import BACKBONES
 
 logger = logging.getLogger(__name__)
 
@@ -211,7 +212,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=100_000, help="total env steps")
     parser.add_argument("--envs", type=int, default=2, help="parallel envs")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
-    parser.add_argument("--backbone", choices=["classical", "simulated"], default=None)
+    parser.add_argument(
+        "--backbone", choices=sorted(BACKBONES), default=None, help="perception backbone (default: none)"
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
     parser.add_argument(
         "--database",
@@ -225,6 +228,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav train ppo``; returns the process exit code."""
+    if args.backbone == "learned":
+        raise ValueError(
+            "PPO trains with --backbone classical or simulated; the learned backbone is for vgpnav eval"
+        )
     train_ppo(
         args.scene,
         args.steps,

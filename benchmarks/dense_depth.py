@@ -33,7 +33,7 @@ import numpy as np
 from vgpnav_env.build import build_runs, default_build_dir
 from vgpnav_env.eval.perception_runs import accuracy_completeness
 from vgpnav_env.perception.backbones import make_backbone
-from vgpnav_env.perception.database import Database, DatabaseConfig
+from vgpnav_env.perception.database import DatabaseConfig, open_database
 from vgpnav_env.perception.pipeline import OccupancyConfig, Perceiver, PerceptionConfig
 from vgpnav_env.runs import load_build, load_run_depth
 
@@ -53,14 +53,14 @@ def main() -> None:
     if not (path / "query").is_dir():
         build_runs(args.scene, path)
     build = load_build(path)
-    db = Database.open(path, config=DatabaseConfig(prior="none"))
+    db = open_database(path, DatabaseConfig(prior="none"))
     query, depth = build.query, load_run_depth(path / "query")
     frames = np.unique(np.linspace(0, len(query) - 1, args.queries).round().astype(int))
     occupancy = OccupancyConfig()
     config = PerceptionConfig.ablation(
         retrieval=args.retrieval, camera_height=float(query.poses[frames[0]][2, 3])
     )
-    perceiver = Perceiver(db, make_backbone("classical", feature_cache=db.feature_cache), config=config)
+    perceiver = Perceiver(db, make_backbone("classical", database=db), config=config)
     perceiver.initialize(query.images[frames[0]])
     camera, s = query.camera, occupancy.point_stride
     stride = np.zeros((camera.height, camera.width), bool)

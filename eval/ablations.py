@@ -12,19 +12,21 @@ configurations run once each over the same query frames; ``report.json`` holds `
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+from dataclasses import replace
 from typing import Any
 
 from vgpnav_env.eval.perception_runs import (
-    QUERY_CAMERA_HEIGHT,
+    QueryRun,
+    add_backbone_arguments,
     add_scene_arguments,
-    evaluate_queries,
+    backbone_options,
     localization_metrics,
-    open_database,
     perception_metrics,
+    query_records,
     resolve_build,
 )
 from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.perception.database import DatabaseConfig, open_database
 from vgpnav_env.perception.pipeline import PerceptionConfig
 from vgpnav_env.runs import load_build
 
@@ -53,34 +55,17 @@ TABLE_V = [
 ]
 
 
-def evaluate_ablations(
-    build_dir: Path,
-    *,
-    backbone: str = "classical",
-    k: int = 10,
-    n_queries: int | None = 20,
-    seed: int = 0,
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Metrics of every configuration and the two tables (module docstring)."""
-    db = open_database(load_build(build_dir), "none")
+def evaluate_ablations(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
+    """Metrics of every configuration (``run`` with its config's switches set) and the two tables."""
+    k, n_queries = run.config.retrieval.k, run.n_queries
+    db = open_database(run.build_dir, DatabaseConfig(prior="none"))
     results: dict[str, dict[str, Any]] = {}
     for name, (retrieval, averaging, scale) in CONFIGS.items():
-        config = PerceptionConfig.ablation(
-            retrieval=retrieval, averaging=averaging, scale=scale, k=k, camera_height=QUERY_CAMERA_HEIGHT
-        )
-        evaluation = evaluate_queries(
-            build_dir,
-            backbone=backbone,
-            config=config,
-            n_queries=n_queries,
-            seed=seed,
-            database=db,
-            progress=progress,
-        )
+        config = PerceptionConfig.ablation(retrieval=retrieval, averaging=averaging, scale=scale, k=k)
+        records = query_records(replace(run, config=config), database=db, progress=progress)
         results[name] = {
-            "localization": localization_metrics(evaluation.records),
-            "perception": perception_metrics(evaluation.records),
+            "localization": localization_metrics(records),
+            "perception": perception_metrics(records),
         }
     table_iv = [
         {
@@ -140,15 +125,17 @@ def _mark(flag: bool) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, queries=20)
-    parser.add_argument("--backbone", choices=("classical", "simulated"), default="classical")
+    add_backbone_arguments(parser)
     parser.add_argument("--k", type=int, default=10, help="number of references (default 10)")
 
 
 def run(args: argparse.Namespace) -> int:
+    options = backbone_options(args)
+    if args.k < 1:
+        raise ValueError(f"--k must be >= 1, got {args.k}")
     build = resolve_build(args)
-    metrics = evaluate_ablations(
-        build, backbone=args.backbone, k=args.k, n_queries=args.queries, seed=args.seed
-    )
+    config = PerceptionConfig.ablation(k=args.k)
+    metrics = evaluate_ablations(QueryRun(build, args.backbone, options, config, args.queries, args.seed))
     iv = [
         (
             _mark(r["geometry_retrieval"]),

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import logging
 from dataclasses import asdict
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -22,15 +21,13 @@ from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
     FrameRecord,
+    QueryRun,
     add_pipeline_arguments,
     add_scene_arguments,
-    config_from_args,
-    evaluate_queries,
     localization_metrics,
-    resolve_build,
+    query_records,
 )
 from vgpnav_env.eval.report import markdown_table, write_report
-from vgpnav_env.perception.pipeline import PerceptionConfig
 
 logger = logging.getLogger(__name__)
 
@@ -60,22 +57,10 @@ def error_cdf_figure(records: list[FrameRecord], title: str = "") -> Figure:
     return fig
 
 
-def evaluate_localization(
-    build_dir: Path,
-    *,
-    backbone: str = "classical",
-    config: PerceptionConfig | None = None,
-    n_queries: int | None = 50,
-    seed: int = 0,
-    progress: bool = True,
-) -> dict[str, Any]:
+def evaluate_localization(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
     """Metrics dict (module docstring) of one configuration on a build's query run."""
-    evaluation = evaluate_queries(
-        build_dir, backbone=backbone, config=config, n_queries=n_queries, seed=seed, progress=progress
-    )
-    metrics = localization_metrics(evaluation.records)
-    metrics["records"] = [asdict(r) for r in evaluation.records]
-    return metrics
+    records = query_records(run, progress=progress)
+    return {**localization_metrics(records), "records": [asdict(r) for r in records]}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -84,20 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    build = resolve_build(args)
-    config = config_from_args(args)
-    metrics = evaluate_localization(
-        build, backbone=args.backbone, config=config, n_queries=args.queries, seed=args.seed
-    )
+    query_run = QueryRun.from_args(args)
+    metrics = evaluate_localization(query_run)
     records = [FrameRecord(**r) for r in metrics["records"]]
-    settings = {
-        "scene": args.scene,
-        "build": str(build),
-        "backbone": args.backbone,
-        "retrieval": args.retrieval,
-        "averaging": args.averaging,
-        "k": args.k,
-    }
+    settings = {"scene": args.scene, **query_run.settings()}
     lost = {}
     for r in records:
         if r.status == "lost":

@@ -27,6 +27,7 @@ from tqdm import tqdm
 from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.cli import seed_arg, size_arg
+from vgpnav_env.eval.perception_runs import add_backbone_arguments, backbone_options
 from vgpnav_env.eval.report import markdown_table, write_report
 from vgpnav_env.robot import Action
 
@@ -352,7 +353,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """CLI arguments of ``vgpnav eval navigation``."""
     parser.add_argument("scene", help="built-in scene name (e.g. home, hospital) or scene source")
     parser.add_argument("--agent", default="astar", help="astar | oracle | ppo:PATH (default astar)")
-    parser.add_argument("--backbone", default="classical", choices=["classical", "simulated"])
+    add_backbone_arguments(parser)
     parser.add_argument("--episodes", type=int, default=20, help="number of start/goal pairs")
     parser.add_argument("--out", required=True, type=Path, help="report directory")
     parser.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i")
@@ -372,6 +373,7 @@ def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav eval navigation``; returns the process exit code."""
     if args.max_steps <= 0:
         raise ValueError(f"--max-steps must be a positive integer, got {args.max_steps}")
+    options = backbone_options(args)
     report = evaluate_navigation(
         args.scene,
         args.agent,
@@ -382,6 +384,7 @@ def run(args: argparse.Namespace) -> int:
         out_dir=args.out,
         env_kwargs={"max_steps": args.max_steps},
         database_dir=args.database,
+        wrapper_kwargs={"backbone_options": options},
     )
     perception = "true pose and map" if args.agent == "oracle" else f"VGP-Nav, {args.backbone} backbone"
     print(

@@ -16,22 +16,21 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import asdict
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
+    FrameRecord,
+    QueryFrame,
+    QueryRun,
     add_pipeline_arguments,
     add_scene_arguments,
-    config_from_args,
-    evaluate_queries,
+    perceive_queries,
     perception_metrics,
-    resolve_build,
 )
 from vgpnav_env.eval.report import markdown_table, write_report
-from vgpnav_env.perception.pipeline import PerceptionConfig
 
 #: Paper Table III (Acc, Comp, Overall in metres) for comparison.
 PAPER = {
@@ -42,44 +41,41 @@ PAPER = {
 }
 
 
-def points_figure(example: dict[str, Any], max_points: int = 6000, seed: int = 0) -> Figure:
+def points_figure(example: QueryFrame | None, max_points: int = 6000, seed: int = 0) -> Figure:
     """Top-down (x, y) view of one frame's predicted (orange) and true (blue) points with both cameras."""
     fig = Figure(figsize=(5.5, 5.0))
     ax = fig.subplots()
     rng = np.random.default_rng(seed)
-    if example:
-        for key, colour, label in (("gt", "tab:blue", "true surface"), ("pred", "tab:orange", "predicted")):
-            p = np.asarray(example[key])
+    if example is not None:
+        for p, colour, label in (
+            (example.surface, "tab:blue", "true surface"),
+            (example.result.points_w, "tab:orange", "predicted"),
+        ):
             if len(p) > max_points:
                 p = p[rng.choice(len(p), max_points, replace=False)]
             ax.scatter(p[:, 0], p[:, 1], s=1, c=colour, alpha=0.5, label=label)
-        for key, marker, label in (("T_true", "o", "true camera"), ("T_est", "x", "estimated camera")):
-            T = example[key]
+        for T, marker, label in (
+            (example.T_true, "o", "true camera"),
+            (example.result.T_wc, "x", "estimated camera"),
+        ):
             ax.plot(*T[:2, 3], marker, c="k", label=label)
             ax.arrow(*T[:2, 3], *(0.4 * T[:2, 2]), head_width=0.05, color="k")
-        ax.set_title(f"query frame {example['frame']} (top-down, metres)")
+        ax.set_title(f"query frame {example.record.frame} (top-down, metres)")
         ax.legend(loc="best", fontsize=7, markerscale=4)
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
     return fig
 
 
-def evaluate_perception(
-    build_dir: Path,
-    *,
-    backbone: str = "classical",
-    config: PerceptionConfig | None = None,
-    n_queries: int | None = 50,
-    seed: int = 0,
-    progress: bool = True,
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(metrics dict, example frame for :func:`points_figure`) of one configuration."""
-    evaluation = evaluate_queries(
-        build_dir, backbone=backbone, config=config, n_queries=n_queries, seed=seed, progress=progress
-    )
-    metrics = perception_metrics(evaluation.records)
-    metrics["records"] = [asdict(r) for r in evaluation.records]
-    return metrics, evaluation.example
+def evaluate_perception(run: QueryRun, *, progress: bool = True) -> tuple[dict[str, Any], QueryFrame | None]:
+    """(metrics dict, the localized frame with the most points for :func:`points_figure`)."""
+    records: list[FrameRecord] = []
+    example: QueryFrame | None = None
+    for frame in perceive_queries(run, progress=progress):
+        records.append(frame.record)
+        if frame.result.localized and (example is None or frame.record.n_points > example.record.n_points):
+            example = frame
+    return {**perception_metrics(records), "records": [asdict(r) for r in records]}, example
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,20 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    build = resolve_build(args)
-    config = config_from_args(args, scale=not args.no_scale_recovery)
-    metrics, example = evaluate_perception(
-        build, backbone=args.backbone, config=config, n_queries=args.queries, seed=args.seed
-    )
-    settings = {
-        "scene": args.scene,
-        "build": str(build),
-        "backbone": args.backbone,
-        "retrieval": args.retrieval,
-        "averaging": args.averaging,
-        "scale_recovery": not args.no_scale_recovery,
-        "k": args.k,
-    }
+    query_run = QueryRun.from_args(args, scale=not args.no_scale_recovery)
+    metrics, example = evaluate_perception(query_run)
+    settings = {"scene": args.scene, **query_run.settings()}
     sections = [
         "## Settings\n\n" + markdown_table(["setting", "value"], list(settings.items())),
         "## Paper Table III (m)\n\n"

@@ -4,8 +4,11 @@ Shared by the localization, perception, timing and ablation protocols:
 
 - :func:`add_scene_arguments` / :func:`resolve_build`: ``SCENE`` + ``--build DIR`` (else the scene
   is built, or reused, with :func:`vgpnav_env.build.build_runs` in the default cache directory);
-- :func:`evaluate_queries`: one :class:`~vgpnav_env.perception.pipeline.Perceiver` over an evenly
-  spaced subset of the query run. The ground anchor is initialised on the first query frame (the
+- :func:`perceive_queries`: the one loop of these protocols; a :class:`QueryRun` (build, backbone,
+  pipeline config, frames, seed) runs one :class:`~vgpnav_env.perception.pipeline.Perceiver` over an
+  evenly spaced subset of the query run and yields a :class:`QueryFrame` per frame; each protocol
+  only computes its metrics (:func:`localization_metrics`, :func:`perception_metrics`, ...) and
+  report from them. The ground anchor is initialised on the first query frame (the
   robot standing still) with that frame's camera height as the calibrated camera-to-base height
   (the query run jitters the camera height per frame by +-0.05 m around the nominal 1.2 m; a robot
   knows its own, and anchoring with the nominal value instead biased every metric scale by ~3%),
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -35,17 +39,13 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from vgpnav_env.geometry import rotation_angle
-from vgpnav_env.perception.backbones import Privileged, make_backbone
-from vgpnav_env.perception.database import Database, DatabaseConfig
+from vgpnav_env.perception.backbones import BACKBONES, Privileged, make_backbone
+from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
-from vgpnav_env.robot import CAMERA_HEIGHT
-from vgpnav_env.runs import Build, load_build, load_run_depth
+from vgpnav_env.runs import load_build, load_run_depth
 
 logger = logging.getLogger(__name__)
 
-#: Nominal camera-to-base height of the query runs (metres), the calibrated anchor.
-QUERY_CAMERA_HEIGHT = CAMERA_HEIGHT
-BACKBONE_CHOICES = ("classical", "simulated")
 #: (translation metres, rotation degrees) thresholds of the recall metrics.
 RECALL_THRESHOLDS = {
     "recall_5cm_5deg": (0.05, 5.0),
@@ -78,12 +78,39 @@ def add_scene_arguments(parser: argparse.ArgumentParser, *, queries: int | None 
     )
 
 
-def add_pipeline_arguments(parser: argparse.ArgumentParser, *, backbone: bool = True) -> None:
-    """``--backbone``, ``--retrieval``, ``--averaging``, ``--k``, ``--prior``."""
-    if backbone:
-        parser.add_argument(
-            "--backbone", choices=BACKBONE_CHOICES, default="classical", help="default classical"
+def add_backbone_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--backbone`` (a :data:`BACKBONES` name), ``--model`` and ``--weights`` (``learned`` only);
+    read them with :func:`backbone_options`."""
+    parser.add_argument(
+        "--backbone", choices=sorted(BACKBONES), default="classical", help="default classical"
+    )
+    parser.add_argument(
+        "--model", metavar="MODULE:FACTORY", help="learned backbone: the model factory, e.g. mypkg.vggt:model"
+    )
+    parser.add_argument(
+        "--weights", type=Path, metavar="PATH", help="learned backbone: a local checkpoint (never downloaded)"
+    )
+
+
+def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``make_backbone`` options of ``--model`` / ``--weights``; a one-line ValueError when they
+    are missing for ``--backbone learned``, or given for another backbone."""
+    if args.backbone != "learned":
+        if args.model is not None or args.weights is not None:
+            raise ValueError(f"--model and --weights are for --backbone learned, not {args.backbone}")
+        return {}
+    if args.model is None or args.weights is None:
+        raise ValueError(
+            "--backbone learned needs --model MODULE:FACTORY and --weights PATH (a local checkpoint)"
         )
+    if not args.weights.is_file():
+        raise ValueError(f"--weights {args.weights}: no such file (the learned backbone never downloads)")
+    return {"model": args.model, "weights_path": args.weights}
+
+
+def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--backbone`` (with ``--model`` / ``--weights``), ``--retrieval``, ``--averaging``, ``--k``."""
+    add_backbone_arguments(parser)
     parser.add_argument(
         "--retrieval", choices=("geometry", "topk"), default="geometry", help="default geometry"
     )
@@ -91,12 +118,6 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser, *, backbone: bool = 
         "--averaging", choices=("weighted", "single"), default="weighted", help="default weighted"
     )
     parser.add_argument("--k", type=int, default=10, help="number of references (default 10)")
-    parser.add_argument(
-        "--prior",
-        choices=("database", "none"),
-        default="none",
-        help="start the map from the database prior (built once, minutes) or empty (default none)",
-    )
 
 
 def resolve_build(args: argparse.Namespace) -> Path:
@@ -158,74 +179,93 @@ class FrameRecord:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-@dataclass
-class QueryEvaluation:
-    """Records of every evaluated frame plus one example frame's points (for figures)."""
+@dataclass(frozen=True)
+class QueryRun:
+    """One configuration of the query-frame protocols (what :func:`perceive_queries` runs).
 
-    records: list[FrameRecord]
-    example: dict[str, Any] = field(default_factory=dict)
+    ``build_dir``: the build whose query run is perceived against its database run (opened without
+    a prior map: no protocol reads the map); ``backbone`` + ``backbone_options``: the
+    ``make_backbone`` name and options; ``config``: the pipeline settings (default: the
+    pipeline's own; the camera height is calibrated on the first frame, see the module
+    docstring); ``n_queries`` evenly spaced frames (0 / None = all); ``seed``: the backbone's noise
+    and the Acc / Comp subsampling.
+    """
+
+    build_dir: Path
+    backbone: str = "classical"
+    backbone_options: Mapping[str, Any] = field(default_factory=dict)
+    config: PerceptionConfig = field(default_factory=PerceptionConfig)
+    n_queries: int | None = 50
+    seed: int = 0
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace, *, scale: bool = True) -> QueryRun:
+        """The run the arguments of :func:`add_scene_arguments` + :func:`add_pipeline_arguments` ask
+        for (bad arguments fail before the scene is built)."""
+        options = backbone_options(args)
+        config = config_from_args(args, scale=scale)
+        return cls(resolve_build(args), args.backbone, options, config, args.queries, args.seed)
+
+    def settings(self) -> dict[str, Any]:
+        """The report's settings: build, backbone and the ablation switches."""
+        return {
+            "build": str(self.build_dir),
+            "backbone": self.backbone,
+            "retrieval": self.config.retrieval.method,
+            "averaging": self.config.averaging.method,
+            "scale_recovery": self.config.scale.enabled,
+            "k": self.config.retrieval.k,
+        }
 
 
-def open_database(build: Build | Path, prior: str = "none") -> Database:
-    path = build.path if isinstance(build, Build) else Path(build)
-    return Database.open(path, config=DatabaseConfig(prior=prior))
+@dataclass(frozen=True)
+class QueryFrame:
+    """One perceived query frame: its :class:`FrameRecord`, the pipeline's result and the truth it
+    was scored against (``T_true`` camera pose, ``surface`` the true visible points in W)."""
+
+    record: FrameRecord
+    result: PerceptionResult
+    T_true: NDArray[np.float64]
+    surface: NDArray[np.float64]
 
 
-def evaluate_queries(
-    build_dir: Path,
+def perceive_queries(
+    run: QueryRun,
     *,
-    backbone: str = "classical",
-    config: PerceptionConfig | None = None,
-    n_queries: int | None = 50,
-    prior: str = "none",
-    seed: int = 0,
+    database: Database | None = None,
     max_depth: float = 5.0,
     max_points: int = 4000,
-    database: Database | None = None,
     progress: bool = True,
-) -> QueryEvaluation:
-    """Perceive an evenly spaced subset of the query run and score every frame (module docstring)."""
-    if backbone not in BACKBONE_CHOICES:
-        raise ValueError(f"backbone must be one of {BACKBONE_CHOICES}, got {backbone!r}")
-    build = load_build(build_dir)
-    config = config or PerceptionConfig(camera_height=QUERY_CAMERA_HEIGHT)
-    db = database or open_database(build, prior)
+) -> Iterator[QueryFrame]:
+    """Perceive the run's query frames in order with one :class:`Perceiver` and score each (module
+    docstring); ``database`` (default: :func:`open_database` of the build, no prior) may be shared
+    between runs."""
+    build = load_build(run.build_dir)
+    db = database or open_database(build.path, DatabaseConfig(prior="none"))
     query = build.query
     depth = load_run_depth(build.path / "query")
-    net = (
-        make_backbone(backbone, seed=seed)
-        if backbone == "simulated"
-        else make_backbone(backbone, feature_cache=db.feature_cache)
-    )
-    frames = query_subset(len(query), n_queries)
+    net = make_backbone(run.backbone, database=db, seed=run.seed, **run.backbone_options)
+    frames = query_subset(len(query), run.n_queries)
     # Calibrated camera-to-base height of the standing-still frame (floor at z = 0 in W).
-    config = replace(config, camera_height=float(query.poses[frames[0]][2, 3]))
+    config = replace(run.config, camera_height=float(query.poses[frames[0]][2, 3]))
     perceiver = Perceiver(db, net, config=config)
 
     def privileged(i: int) -> Privileged | None:
-        return Privileged(query.poses[i], np.zeros((0, 4, 4)), depth[i]) if backbone == "simulated" else None
+        return Privileged(query.poses[i], np.zeros((0, 4, 4)), depth[i]) if net.privileged else None
 
     perceiver.initialize(query.images[frames[0]], privileged(frames[0]))
-    rng = np.random.default_rng(seed)
-    cam = query.camera
-    records: list[FrameRecord] = []
-    example: dict[str, Any] = {}
+    rng = np.random.default_rng(run.seed)
     for i in tqdm(frames, desc="perceiving queries", unit="frame", disable=not progress):
         result = perceiver.perceive(query.images[i], privileged(i))
         T = query.poses[i]
         in_range = np.isfinite(depth[i]) & (depth[i] > 0) & (depth[i] <= max_depth)
-        gt = cam.backproject_world(depth[i], T, in_range)
-        records.append(_record(int(i), result, T, gt, rng, max_points))
-        if result.localized and (not example or records[-1].n_points > example["n_points"]):
-            example = {
-                "frame": int(i),
-                "pred": result.points_w,
-                "gt": gt,
-                "T_true": T,
-                "T_est": result.T_wc,
-                "n_points": records[-1].n_points,
-            }
-    return QueryEvaluation(records, example)
+        surface = query.camera.backproject_world(depth[i], T, in_range)
+        yield QueryFrame(_record(int(i), result, T, surface, rng, max_points), result, T, surface)
+
+
+def query_records(run: QueryRun, **kwargs: Any) -> list[FrameRecord]:
+    """The :class:`FrameRecord` of every frame of :func:`perceive_queries` (same arguments)."""
+    return [frame.record for frame in perceive_queries(run, **kwargs)]
 
 
 def _record(
@@ -293,9 +333,5 @@ def config_from_args(args: argparse.Namespace, *, scale: bool = True) -> Percept
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
     return PerceptionConfig.ablation(
-        retrieval=args.retrieval,
-        averaging=args.averaging,
-        scale=scale,
-        k=args.k,
-        camera_height=QUERY_CAMERA_HEIGHT,
+        retrieval=args.retrieval, averaging=args.averaging, scale=scale, k=args.k
     )

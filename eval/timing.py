@@ -16,21 +16,19 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
+    QueryRun,
     add_pipeline_arguments,
     add_scene_arguments,
-    config_from_args,
-    evaluate_queries,
-    resolve_build,
+    query_records,
 )
 from vgpnav_env.eval.report import markdown_table, write_report
-from vgpnav_env.perception.pipeline import TIMING_KEYS, PerceptionConfig
+from vgpnav_env.perception.pipeline import TIMING_KEYS
 
 #: Paper Table VI, seconds per frame (VGGT backbone, RTX 5090); occupancy is not listed there.
 PAPER_SECONDS = {
@@ -43,33 +41,21 @@ PAPER_SECONDS = {
 }
 
 
-def evaluate_timing(
-    build_dir: Path,
-    *,
-    backbone: str = "classical",
-    config: PerceptionConfig | None = None,
-    n_queries: int | None = 20,
-    seed: int = 0,
-    progress: bool = True,
-) -> dict[str, Any]:
+def evaluate_timing(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
     """``seconds_per_frame`` medians per stage (and per backbone sub-stage), with percentiles."""
-    evaluation = evaluate_queries(
-        build_dir, backbone=backbone, config=config, n_queries=n_queries, seed=seed, progress=progress
-    )
-    timed = evaluation.records[1:] or evaluation.records
-    records = [r for r in timed if r.status == "localized"] or timed
-    table = {k: np.array([r.timings.get(k, np.nan) for r in records], float) for k in TIMING_KEYS}
-    sub = sorted({k for r in records for k in r.timings} - set(TIMING_KEYS) - {"cpu"})
+    records = query_records(run, progress=progress)
+    timed = records[1:] or records
+    used = [r for r in timed if r.status == "localized"] or timed
+    table = {k: np.array([r.timings.get(k, np.nan) for r in used], float) for k in TIMING_KEYS}
+    sub = sorted({k for r in used for k in r.timings} - set(TIMING_KEYS) - {"cpu"})
     return {
         "seconds_per_frame": {k: float(np.nanmedian(v)) for k, v in table.items()},
-        "cpu_seconds_per_frame": float(np.nanmedian([r.timings.get("cpu", np.nan) for r in records])),
+        "cpu_seconds_per_frame": float(np.nanmedian([r.timings.get("cpu", np.nan) for r in used])),
         "seconds_p90": {k: float(np.nanpercentile(v, 90)) for k, v in table.items()},
-        "backbone_seconds": {
-            k: float(np.nanmedian([r.timings.get(k, np.nan) for r in records])) for k in sub
-        },
+        "backbone_seconds": {k: float(np.nanmedian([r.timings.get(k, np.nan) for r in used])) for k in sub},
         "total_all_frames": float(np.median([r.timings.get("total", np.nan) for r in timed])),
         "paper_seconds_per_frame": PAPER_SECONDS,
-        "n_frames": len(records),
+        "n_frames": len(used),
         "n_lost": sum(r.status == "lost" for r in timed),
         "cpu_count": os.cpu_count(),
         "load_average": list(os.getloadavg()),
@@ -99,10 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    build = resolve_build(args)
-    metrics = evaluate_timing(
-        build, backbone=args.backbone, config=config_from_args(args), n_queries=args.queries, seed=args.seed
-    )
+    metrics = evaluate_timing(QueryRun.from_args(args))
     rows = [
         (k, metrics["seconds_per_frame"][k], metrics["seconds_p90"][k], PAPER_SECONDS[k]) for k in TIMING_KEYS
     ]

@@ -7,6 +7,7 @@ import pytest
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import (
+    BACKBONES,
     BackboneOutput,
     ClassicalBackbone,
     Privileged,
@@ -50,6 +51,26 @@ def test_registry_builds_each_backbone_and_rejects_unknown_names():
         make_backbone("vggt-online")
     with pytest.raises(TypeError):
         make_backbone("classical", no_such_knob=1)
+    with pytest.raises(ValueError, match="learned backbone needs model and weights_path"):
+        make_backbone("learned")
+    assert sorted(BACKBONES) == ["classical", "learned", "simulated"]
+
+
+def test_reseed_draws_the_episode_stream_from_the_given_generator():
+    image, refs, priv, _ = random_setup(3)
+    noisy = {"rotation_noise_deg": 2.0, "depth_noise": 0.05}
+    a, b = make_backbone("simulated", seed=1, **noisy), make_backbone("simulated", seed=2, **noisy)
+    a.reseed(np.random.default_rng(7))
+    b.reseed(np.random.default_rng(7))
+    out_a, out_b = a(image, refs, TINY, privileged=priv), b(image, refs, TINY, privileged=priv)
+    np.testing.assert_array_equal(out_a.T_qi, out_b.T_qi)
+    np.testing.assert_array_equal(out_a.query_depth, out_b.query_depth)
+    b.reseed(np.random.default_rng(8))
+    assert not np.array_equal(b(image, refs, TINY, privileged=priv).T_qi, out_a.T_qi)
+    # A deterministic backbone draws nothing: the caller's stream is the same with or without it.
+    rng = np.random.default_rng(7)
+    make_backbone("classical").reseed(rng)
+    assert rng.integers(2**63) == np.random.default_rng(7).integers(2**63)
 
 
 def test_output_contract_validates_shapes():

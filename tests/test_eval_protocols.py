@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from tiny_build import make_tiny_build
 
 from vgpnav_env.cli import main
@@ -83,6 +84,68 @@ def test_ablations_report(build: Path, tmp_path: Path) -> None:
     assert [row["paper_acc_m"] for row in r["table_v"]] == [1.74, 0.61, 0.09, 0.08]
     full, unscaled = r["table_v"][3], r["table_v"][1]
     assert full["acc_m"] < unscaled["acc_m"]
+
+
+class StillCamera(torch.nn.Module):
+    """A model with the learned backbone's contract that places every image at one pose, depth 1."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.depth = torch.nn.Parameter(torch.ones(()))
+
+    def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
+        n, _, h, w = images.shape
+        extrinsic = torch.eye(4, dtype=torch.float64)[:3].expand(n, 3, 4)
+        return {
+            "extrinsic": extrinsic,
+            "depth": self.depth.expand(n, h, w),
+            "depth_conf": torch.full((n, h, w), 2.0),
+        }
+
+
+def test_learned_backbone_is_selected_with_model_and_weights(
+    build: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = ["eval", "localization", "tiny", "--build", str(build), "--queries", "2", "--k", "3"]
+    weights = tmp_path / "still.pt"
+    for extra, message in (
+        (["--backbone", "learned"], "--backbone learned needs --model MODULE:FACTORY and --weights PATH"),
+        (["--backbone", "learned", "--model", "x:y", "--weights", str(weights)], "no such file"),
+        (["--backbone", "classical", "--weights", str(weights)], "are for --backbone learned"),
+    ):
+        out = tmp_path / "refused"
+        assert main([*base, *extra, "--out", str(out)]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and message in lines[0], lines
+        assert not out.exists()
+    torch.save(StillCamera().state_dict(), weights)
+    out = tmp_path / "learned"
+    args = ["--backbone", "learned", "--model", f"{__name__}:StillCamera", "--weights", str(weights)]
+    assert main([*base, *args, "--out", str(out)]) == 0
+    r = report(out)
+    # One pose for every image: no baseline to triangulate from, every frame lost (not an error).
+    assert r["settings"]["backbone"] == "learned" and r["n_queries"] == 2 and r["n_lost"] == 2
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["eval", "navigation", "home", "--backbone", "learned"], "--backbone learned needs --model"),
+        (["eval", "ablations", "home", "--backbone", "learned"], "--backbone learned needs --model"),
+        (
+            ["train", "ppo", "home", "--backbone", "learned"],
+            "PPO trains with --backbone classical or simulated",
+        ),
+    ],
+)
+def test_every_backbone_choice_is_usable_or_refused_in_one_line(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
+    assert not out.exists()
 
 
 def test_query_subset_and_metrics() -> None:

@@ -98,8 +98,11 @@ def test_stored_features_equal_fresh_ones_and_follow_the_settings(
     assert small.feature_cache.settings["max_keypoints"] == 200
     assert 0 < np.diff(small.feature_cache.offsets).max() <= 205
     with pytest.raises(ValueError, match="stored features"):
+        make_backbone("classical", database=small)
+    with pytest.raises(ValueError, match="stored features"):
         Perceiver(small, "classical")
-    Perceiver(small, make_backbone("classical", config=few, feature_cache=small.feature_cache))
+    fitting = make_backbone("classical", config=few, database=small)
+    assert Perceiver(small, fitting).backbone.feature_cache is small.feature_cache
     again = Database.open(copy, config=DatabaseConfig(vlad=FAST_VLAD, prior="none"), backbone_config=few)
     np.testing.assert_array_equal(again.feature_cache.sift, small.feature_cache.sift)
 

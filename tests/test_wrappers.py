@@ -10,8 +10,8 @@ import pytest
 
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput
-from vgpnav_env.perception.database import DatabaseConfig
-from vgpnav_env.wrappers import VGPNavObservation, open_database
+from vgpnav_env.perception.database import DatabaseConfig, open_database
+from vgpnav_env.wrappers import VGPNavObservation
 
 ENV_ID = "VGPNav/PointGoal-v0"
 
@@ -186,11 +186,11 @@ def test_motion_gate_rejects_a_pose_jump_until_it_persists(database, gate: bool)
         return
     assert obs["localized"] == 0 and info["perception"]["reason"] == "inconsistent motion"
     np.testing.assert_allclose(obs["pose"], start + np.array([0.0, 0.0, np.radians(15)]), atol=1e-4)
-    before = env.last_result.occupancy.logodds.copy()
+    before = env.perceiver.map.logodds.copy()
     for n in range(8):  # turning in place does not widen the distance gate: still rejected
         obs, _, _, _, _ = env.step(3 if n % 2 == 0 else 2)
         assert obs["localized"] == 0
-    np.testing.assert_array_equal(env.last_result.occupancy.logodds, before)  # nothing fused
+    np.testing.assert_array_equal(env.perceiver.map.logodds, before)  # nothing fused
     # The distance gate grows by 0.1 m per forward step the robot makes (from 0.5 m): a jump that
     # persists is accepted once the gate reaches it (1 m after 5 steps; +-1 for the mm-level
     # errors of the perceived and dead-reckoned poses), so a drifted estimate is re-captured.

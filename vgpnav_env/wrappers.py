@@ -24,9 +24,9 @@ image against the scene's database run and replaces the raw observation by a nav
 frame's status, reason, ``T_wc``, scale, scale source, anchored ground height, references and
 confident pairs), ``estimated_pose``, ``obstacles`` (bool grid of occupied cells of the fused map)
 with ``map_spec`` (its ``GridSpec``), and ``localization_error_m``. The full
-:class:`PerceptionResult` of the last frame (points, timings, the live fused ``LogOddsMap``) is
-``wrapper.last_result``; it stays out of ``info`` so that ``info`` is comparable between runs
-(timings differ).
+:class:`PerceptionResult` of the last frame (points, timings) is ``wrapper.last_result`` and the
+live fused ``LogOddsMap`` is ``wrapper.perceiver.map``; they stay out of ``info`` so that ``info``
+is comparable between runs (timings differ).
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets initialise the ground anchor (paper: ground height initialisation
@@ -37,6 +37,7 @@ and fused obstacles).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,15 +48,13 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
-from vgpnav_env.perception.backbones.base import Backbone, Privileged
-from vgpnav_env.perception.database import Database, DatabaseConfig
+from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
+from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult, PoseGate
 from vgpnav_env.robot import Action, predict_pose
 
 logger = logging.getLogger(__name__)
 
-#: Databases opened in this process, by (directory, config): opening fits/loads the index and prior.
-_DATABASES: dict[tuple[str, str], Database] = {}
 POSE_MARGIN_M = 5.0
 #: Default odometry gate: (max_distance m, max_yaw_deg, growth m per forward step and growth deg per
 #: turn since the last fix).
@@ -68,17 +67,6 @@ def _thumbnail(rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
     """A 40x30 grey thumbnail (float grey levels) for detecting a blocked step from pixels."""
     grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
     return cv2.resize(grey, (40, 30), interpolation=cv2.INTER_AREA).astype(np.float32)
-
-
-def open_database(path: str | Path, config: DatabaseConfig | None = None) -> Database:
-    """``Database.open`` cached in-process (one copy per directory and config)."""
-    path = Path(path).resolve()
-    if (path / "summary.json").is_file() and (path / "database").is_dir():
-        path = path / "database"  # a build directory: its database run
-    key = (str(path), repr(config))
-    if key not in _DATABASES:
-        _DATABASES[key] = Database.open(path, config=config)
-    return _DATABASES[key]
 
 
 def scene_database_dir(env: gym.Env, seed: int = 0, progress: bool = False) -> Path:
@@ -103,7 +91,11 @@ def scene_database_dir(env: gym.Env, seed: int = 0, progress: bool = False) -> P
 
 
 class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """VGP-Nav state observations (see the module docstring) over ``VGPNav/PointGoal-v0``."""
+    """VGP-Nav state observations (see the module docstring) over ``VGPNav/PointGoal-v0``.
+
+    ``backbone``: a :class:`Backbone`, or a registry name built by ``make_backbone(backbone,
+    database=..., **backbone_options)`` (e.g. ``learned`` with ``model`` and ``weights_path``).
+    """
 
     def __init__(
         self,
@@ -120,6 +112,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         build_seed: int = 0,
         motion_gate: tuple[float, float, float, float] | None = MOTION_GATE,
         stall_threshold: float = STALL_THRESHOLD,
+        backbone_options: Mapping[str, Any] | None = None,
     ) -> None:
         # Recorded for env re-creation from the spec; an open database is recorded by its directory.
         gym.utils.RecordConstructorArgs.__init__(
@@ -134,6 +127,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             build_seed=build_seed,
             motion_gate=motion_gate,
             stall_threshold=stall_threshold,
+            backbone_options=backbone_options,
         )
         gym.Wrapper.__init__(self, env)
         base = env.unwrapped
@@ -162,6 +156,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 database_dir = scene_database_dir(env, build_seed)
             database = open_database(database_dir, database_config)
         config = perception_config or PerceptionConfig(camera_height=base.camera_height)
+        if isinstance(backbone, str):
+            backbone = make_backbone(backbone, database=database, **(backbone_options or {}))
         self.perceiver = Perceiver(database, backbone, camera=base.camera, config=config)
         self.map_size = int(map_size)
         self.map_resolution = float(map_resolution)
@@ -204,8 +200,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
         base = self.env.unwrapped
-        if hasattr(self.perceiver.backbone, "rng"):
-            self.perceiver.backbone.rng = np.random.default_rng(int(base.np_random.integers(2**63)))
+        self.perceiver.backbone.reseed(base.np_random)
         self.perceiver.reset()
         pose = np.asarray(info["pose"], float)
         images, privileged = [obs["rgb"]], [self._privileged(info["T_wc"], info["depth"])]
@@ -274,7 +269,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         elif predicted is not None:
             self.estimate = predicted
         else:  # never localized in this episode: nothing better than the map centre
-            spec = result.occupancy.spec
+            spec = self.perceiver.map.spec
             centre = np.asarray(spec.origin) + 0.5 * np.asarray(spec.shape[::-1]) * spec.resolution
             self.estimate = np.array([centre[0], centre[1], 0.0])
         self.estimate = np.clip(self.estimate, self._pose_low, self._pose_high)
@@ -282,7 +277,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         x, y, yaw = self.estimate
         goal = np.asarray(obs["goal"], float)
         d = goal - self.estimate[:2]
-        occupancy = result.occupancy
+        occupancy = self.perceiver.map
         crop = occupancy.egocentric_crop(x, y, yaw, self.map_size, self.map_resolution)
         max_dist = float(self.observation_space["goal_rel"].high[0])
         new_obs = {

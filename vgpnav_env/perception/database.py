@@ -1,7 +1,8 @@
 """The database a robot localizes against: posed RGB images, their VLAD index and a prior map.
 
-``Database.open(run_dir)`` loads a database run (:mod:`vgpnav_env.runs`; a build directory is
-accepted too and its ``database/`` run is used), and computes once, caching under
+:func:`open_database` (the one way to open one: once per process and settings) loads a database
+run (:mod:`vgpnav_env.runs`; a build directory is accepted too and its ``database/`` run is used)
+with :meth:`Database.open`, which computes once, caching under
 ``<run_dir>/index/`` keyed by :func:`vgpnav_env.runs.run_fingerprint` (a changed run invalidates
 the cache; every file is written atomically):
 
@@ -283,6 +284,21 @@ class Database:
     def __len__(self) -> int:
         return len(self.run)
 
+    def features_for(self, config: ClassicalConfig) -> FeatureCache:
+        """The feature cache a classical backbone with ``config`` shares with this database.
+
+        Raises ValueError when the stored features were extracted with other settings
+        (:func:`feature_settings`): open the database with that ``backbone_config`` instead.
+        """
+        store = self.feature_cache
+        if isinstance(store, StoredFeatures) and store.settings != feature_settings(config):
+            raise ValueError(
+                f"the database's stored features were extracted with {store.settings}, the backbone "
+                f"uses {feature_settings(config)}: open the database with the backbone's "
+                "ClassicalConfig (open_database(..., backbone_config=...))"
+            )
+        return store
+
     def new_map(self) -> LogOddsMap:
         """A fresh log-odds map over :attr:`map_spec`: a copy of the prior, or empty."""
         return self.prior.copy() if self.prior is not None else LogOddsMap(self.map_spec)
@@ -303,9 +319,7 @@ class Database:
         """
         config = config or DatabaseConfig()
         backbone_config = backbone_config or ClassicalConfig()
-        path = Path(run_dir)
-        if (path / "summary.json").is_file() and (path / "database").is_dir():
-            path = path / "database"
+        path = database_run_dir(run_dir)
         run = load_run(path)
         if run.metadata.get("kind") not in (None, "database"):
             raise RunFormatError(f"{path}: is a {run.metadata.get('kind')!r} run, expected a database run")
@@ -377,6 +391,38 @@ class Database:
         )
         meta = {"fingerprint": self.fingerprint, "key": key, "stats": stats}
         atomic_write(meta_file, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+
+
+def database_run_dir(path: str | os.PathLike) -> Path:
+    """The database run of a build directory (``<build>/database``), else ``path`` itself."""
+    path = Path(path)
+    if (path / "summary.json").is_file() and (path / "database").is_dir():
+        return path / "database"
+    return path
+
+
+#: Databases opened in this process by :func:`open_database`, by (directory, settings).
+_OPEN: dict[tuple[str, str, str], Database] = {}
+
+
+def open_database(
+    path: str | os.PathLike,
+    config: DatabaseConfig | None = None,
+    backbone_config: ClassicalConfig | None = None,
+) -> Database:
+    """The database at ``path`` (a database run or a build directory), opened once per process.
+
+    The one way to open a database: :meth:`Database.open` (index, stored features and prior
+    map from the on-disk cache, computed when missing) on the first call for a directory and
+    settings (defaults: :class:`DatabaseConfig`, :class:`ClassicalConfig`), the same object after
+    that. A run changed on disk while the process runs is not noticed.
+    """
+    path = database_run_dir(Path(path).resolve())
+    config, backbone_config = config or DatabaseConfig(), backbone_config or ClassicalConfig()
+    key = (str(path), repr(config), repr(backbone_config))
+    if key not in _OPEN:
+        _OPEN[key] = Database.open(path, config=config, backbone_config=backbone_config)
+    return _OPEN[key]
 
 
 def prior_neighbours(poses: NDArray[np.float64], j: int, config: DatabaseConfig) -> NDArray[np.int64]:

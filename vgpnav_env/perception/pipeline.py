@@ -33,10 +33,9 @@ from numpy.typing import NDArray
 from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, make_pose, rotation_angle, wrap_angle
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
-from vgpnav_env.perception.backbones.classical import ClassicalBackbone
-from vgpnav_env.perception.database import Database, StoredFeatures, feature_settings
+from vgpnav_env.perception.database import Database
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
-from vgpnav_env.perception.occupancy import LogOddsMap, PointClasses
+from vgpnav_env.perception.occupancy import PointClasses
 from vgpnav_env.perception.retrieval import RetrievalConfig, pose_guided_references, select_references
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
@@ -187,14 +186,13 @@ class PoseGate:
         return distance <= self.max_distance and yaw <= self.max_yaw
 
 
-@dataclass
+@dataclass(frozen=True)
 class PerceptionResult:
-    """One frame's navigation-ready state.
+    """One frame's navigation-ready state (immutable; the fused map is :attr:`Perceiver.map`).
 
     ``T_wc``: metric camera pose (4x4, OpenCV camera -> world); None when lost.
     ``points_w`` (N, 3) float32 metric world points of the query (confident, subsampled
     pixels; empty when lost) and their ``classes`` (free ground / obstacle masks).
-    ``occupancy``: the perceiver's fused map (the live object, after this frame).
     ``references``: database indices used, best match first. ``scale``: metres per backbone
     unit (nan when lost) and ``scale_source`` (ground | fallback | disabled | none).
     ``z_ground``: anchored floor height (W, metres). ``timings``: wall seconds per stage
@@ -207,7 +205,6 @@ class PerceptionResult:
     T_wc: NDArray[np.float64] | None
     points_w: NDArray[np.float32]
     classes: PointClasses | None
-    occupancy: LogOddsMap
     references: NDArray[np.int64]
     scale: float
     scale_source: str
@@ -224,14 +221,13 @@ class PerceptionResult:
         return self.status == "localized"
 
 
-def _lost(reason: str, detail: str, occupancy: LogOddsMap, refs: NDArray[np.int64], **kw) -> PerceptionResult:
+def _lost(reason: str, detail: str, refs: NDArray[np.int64], **kw) -> PerceptionResult:
     return PerceptionResult(
         status="lost",
         reason=reason,
         T_wc=kw.pop("T_wc", None),
         points_w=np.zeros((0, 3), np.float32),
         classes=None,
-        occupancy=occupancy,
         references=refs,
         scale=float("nan"),
         scale_source="none",
@@ -245,9 +241,12 @@ def _lost(reason: str, detail: str, occupancy: LogOddsMap, refs: NDArray[np.int6
 class Perceiver:
     """Stateful VGP-Nav perception for one robot episode.
 
-    ``camera`` defaults to the database camera (query images must have its size). Call
-    :meth:`reset` per episode, optionally :meth:`initialize` with frames taken standing still
-    (else the first localized frame anchors the ground), then :meth:`perceive` per frame.
+    ``backbone``: a :class:`Backbone` or a registry name (built with
+    :func:`~vgpnav_env.perception.backbones.make_backbone` for ``database``). ``camera`` defaults
+    to the database camera (query images must have its size). :attr:`map` is the fused log-odds
+    map of the episode (the live object). Call :meth:`reset` per episode, optionally
+    :meth:`initialize` with frames taken standing still (else the first localized frame anchors
+    the ground), then :meth:`perceive` per frame.
     ``privileged`` (simulated backbone only) carries the query's true ``T_wq`` and depth; the
     references' ``T_wi`` are filled in here from the database.
     """
@@ -260,18 +259,7 @@ class Perceiver:
         config: PerceptionConfig | None = None,
     ) -> None:
         self.database = database
-        if isinstance(backbone, str):
-            options = {"feature_cache": database.feature_cache} if backbone == "classical" else {}
-            backbone = make_backbone(backbone, **options)
-        self.backbone = backbone
-        cache = getattr(backbone, "feature_cache", None)
-        if isinstance(backbone, ClassicalBackbone) and isinstance(cache, StoredFeatures):
-            if cache.settings != feature_settings(backbone.config):
-                raise ValueError(
-                    f"the database's stored features were extracted with {cache.settings}, the backbone "
-                    f"uses {feature_settings(backbone.config)}: open the database with the backbone's "
-                    "ClassicalConfig (Database.open(..., backbone_config=...))"
-                )
+        self.backbone = make_backbone(backbone, database=database) if isinstance(backbone, str) else backbone
         self.camera = camera or database.camera
         if (self.camera.width, self.camera.height) != (database.camera.width, database.camera.height):
             raise ValueError(
@@ -285,7 +273,6 @@ class Perceiver:
         """Forget the episode: a fresh map from the prior and no ground anchor."""
         self.map = self.database.new_map()
         self.anchor = GroundAnchor(self.config.scale)
-        self.n_frames = 0
 
     @property
     def initialized(self) -> bool:
@@ -324,7 +311,6 @@ class Perceiver:
         """
         t_start, cpu_start = time.perf_counter(), time.process_time()
         loc = self._localize(rgb, privileged)
-        self.n_frames += 1
         timings = loc.timings
         if loc.status == "lost":
             fallback = self._single_fallback(loc)
@@ -345,7 +331,6 @@ class Perceiver:
             return _lost(
                 reason,
                 detail,
-                self.map,
                 loc.references,
                 T_wc=T_wc,
                 timings=timings,
@@ -413,7 +398,6 @@ class Perceiver:
             T_wc=T_wc,
             points_w=points_w.astype(np.float32),
             classes=classes,
-            occupancy=self.map,
             references=loc.references,
             scale=est.scale,
             scale_source=est.source,
@@ -440,9 +424,14 @@ class Perceiver:
             self.database.poses[loc.references], out.T_qi, out.confidence, config, scale_valid=out.scale_valid
         )
         loc.timings["motion_averaging"] += time.perf_counter() - t0
-        loc.status, loc.reason, loc.T_wc, loc.motion = "localized", "", motion.T_wq, motion
-        loc.detail = f"single-pair fallback after: {loc.detail}"
-        return loc
+        return replace(
+            loc,
+            status="localized",
+            reason="",
+            T_wc=motion.T_wq,
+            motion=motion,
+            detail=f"single-pair fallback after: {loc.detail}",
+        )
 
     def _check_scale(self, est: ScaleEstimate, ray_scale: float) -> ScaleEstimate:
         r = self.config.scale_check_ratio
@@ -516,7 +505,7 @@ class Perceiver:
         refs = select_references(sims, db.poses, self.config.retrieval)
         timings["retrieval"] = time.perf_counter() - t0
         if len(refs) == 0:
-            return _lost("too few matches", "empty database", self.map, refs, timings=timings)
+            return _lost("too few matches", "empty database", refs, timings=timings)
 
         out, motion = self._round(rgb, refs, privileged, timings)
         expansion = self._expansion(refs, out, motion, sims)
@@ -540,7 +529,6 @@ class Perceiver:
             return _lost(
                 "too few matches",
                 f"no reference pair passed the backbone (matches {out.n_matches.tolist()})",
-                self.map,
                 refs,
                 timings=timings,
                 backbone=out,
@@ -550,7 +538,6 @@ class Perceiver:
             return _lost(
                 reason,
                 motion.reason,
-                self.map,
                 refs,
                 timings=timings,
                 motion=motion,
@@ -564,7 +551,6 @@ class Perceiver:
             T_wc=motion.T_wq,
             points_w=np.zeros((0, 3), np.float32),
             classes=None,
-            occupancy=self.map,
             references=refs,
             scale=float("nan"),
             scale_source="none",

@@ -102,10 +102,21 @@ class BackboneOutput:
 
 
 class Backbone(ABC):
-    """A feed-forward reconstruction backbone; subclasses set ``name`` and ``privileged``."""
+    """A feed-forward reconstruction backbone; subclasses set ``name`` and ``privileged``.
+
+    Build one with :func:`vgpnav_env.perception.backbones.make_backbone`. A backbone that draws
+    random numbers overrides :meth:`reseed`, which callers run once per episode.
+    """
 
     name: str = "backbone"
     privileged: bool = False
+
+    def reseed(self, rng: np.random.Generator) -> None:  # noqa: B027 (deterministic: no-op)
+        """Start a new episode's random stream, drawn from ``rng`` (e.g. the env's ``np_random``).
+
+        Deterministic backbones (this default) draw nothing from ``rng``; a random one draws its
+        seed from it, so episodes with the same ``rng`` state see the same noise.
+        """
 
     @abstractmethod
     def __call__(

@@ -84,6 +84,10 @@ class SimulatedBackbone(Backbone):
         #: The scale drawn for the latest call (privileged, for evaluation and tests only).
         self.last_scale: float | None = None
 
+    def reseed(self, rng: np.random.Generator) -> None:
+        """A new noise stream seeded by one draw from ``rng`` (see :meth:`Backbone.reseed`)."""
+        self.rng = np.random.default_rng(int(rng.integers(2**63)))
+
     def __call__(
         self,
         query: NDArray[np.uint8],
