@@ -9,7 +9,8 @@
 With a ``backbone`` the env is wrapped in ``vgpnav_env.wrappers.VGPNavObservation`` (estimated
 pose, goal relative to it, egocentric occupancy crop, localized flag); without one the policy sees
 the raw env observation (camera image + world goal). ``--resume`` continues from the newest
-checkpoint until ``N`` total steps.
+checkpoint until ``N`` total steps. ``vgpnav eval navigation SCENE --agent ppo:DIR`` (or
+``eval.navigation.evaluate_policy``) evaluates a trained policy with :class:`SB3Policy`.
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
-from vgpnav_env.cli import seed_arg
+from vgpnav_env.arguments import seed_arg
 from vgpnav_env.perception.backbones import BACKBONES
 
 logger = logging.getLogger(__name__)
@@ -48,9 +50,9 @@ def make_env(
     """
     env = gym.make(ENV_ID, scene=scene, **env_kwargs)
     if backbone:
-        from vgpnav_env.eval.navigation import perception_wrapper
+        from vgpnav_env.wrappers import VGPNavObservation
 
-        env = perception_wrapper(backbone, database_dir=database_dir)(env)
+        env = VGPNavObservation(env, backbone=backbone, database_dir=database_dir)
     return env
 
 
@@ -75,6 +77,22 @@ def make_vec(
         env_kwargs={"scene": scene, "backbone": backbone, "database_dir": database_dir, **env_kwargs},
         vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
     )
+
+
+class SB3Policy:
+    """A saved stable-baselines3 policy acting deterministically."""
+
+    def __init__(self, path: str | Path) -> None:
+        from stable_baselines3 import PPO
+
+        self.model = PPO.load(str(path), device="cpu")
+
+    def reset(self) -> None:
+        return None
+
+    def act(self, obs: Any, info: dict[str, Any]) -> Any:
+        action, _ = self.model.predict(obs, deterministic=True)
+        return int(action) if np.ndim(action) == 0 else action
 
 
 def latest_checkpoint(out_dir: str | Path) -> Path | None:
@@ -179,31 +197,6 @@ def train_ppo(
         venv.close()
     logger.info("PPO trained for %d steps -> %s", model.num_timesteps, out / MODEL_FILE)
     return out / MODEL_FILE
-
-
-def evaluate_policy(
-    path: str | Path,
-    episodes: int = 20,
-    scene: str | None = None,
-    seed: int = 1000,
-    out_dir: str | Path | None = None,
-    progress: bool = False,
-) -> dict[str, Any]:
-    """Navigation protocol (``eval.navigation``) for a trained policy in the env it was trained on."""
-    from vgpnav_env.eval.navigation import evaluate_navigation
-
-    config = load_config(path)
-    return evaluate_navigation(
-        scene or config["scene"],
-        agent=f"ppo:{model_path(path)}",
-        backbone=config["backbone"] or "classical",
-        episodes=episodes,
-        seed=seed,
-        size=tuple(config["env_kwargs"]["image_size"]),
-        out_dir=out_dir,
-        progress=progress,
-        database_dir=config.get("database_dir"),
-    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

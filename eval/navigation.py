@@ -24,9 +24,10 @@ import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
+from vgpnav_env.agents import ppo
 from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
-from vgpnav_env.cli import seed_arg, size_arg
+from vgpnav_env.arguments import seed_arg, size_arg
 from vgpnav_env.eval.perception_runs import add_backbone_arguments, backbone_options
 from vgpnav_env.eval.report import markdown_table, write_report
 from vgpnav_env.robot import Action
@@ -86,22 +87,6 @@ class PerceptionAStar:
         return self.agent.act((x, y, yaw), info["obstacles"], info["map_spec"], goal)
 
 
-class SB3Policy:
-    """A saved stable-baselines3 policy acting deterministically."""
-
-    def __init__(self, path: str | Path) -> None:
-        from stable_baselines3 import PPO
-
-        self.model = PPO.load(str(path), device="cpu")
-
-    def reset(self) -> None:
-        return None
-
-    def act(self, obs: Any, info: dict[str, Any]) -> Any:
-        action, _ = self.model.predict(obs, deterministic=True)
-        return int(action) if np.ndim(action) == 0 else action
-
-
 def perception_wrapper(backbone: str, **wrapper_kwargs: Any) -> Callable[[gym.Env], gym.Env]:
     """``env -> VGPNavObservation(env, backbone=backbone, **wrapper_kwargs)``."""
     from vgpnav_env.wrappers import VGPNavObservation
@@ -120,13 +105,11 @@ def make_agent(
     if agent == "astar":
         return PerceptionAStar, perception_wrapper(backbone, **wrapper_kwargs), {}
     if agent.startswith("ppo:"):
-        from vgpnav_env.agents.ppo import load_config, model_path
-
-        path = model_path(agent[4:])
-        config = load_config(path)
+        path = ppo.model_path(agent[4:])
+        config = ppo.load_config(path)
         wrapper = perception_wrapper(config["backbone"], **wrapper_kwargs) if config.get("backbone") else None
         env_kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
-        return (lambda env: SB3Policy(path)), wrapper, env_kwargs
+        return (lambda env: ppo.SB3Policy(path)), wrapper, env_kwargs
     raise ValueError(f"unknown agent {agent!r}; allowed: astar, oracle, ppo:PATH")
 
 
@@ -230,8 +213,8 @@ def plot_trajectory(env: gym.Env, record: EpisodeRecord, path: Path) -> None:
     img[gt.free] = 0.75
     img[env.unwrapped.world.navigable] = 1.0
     img[gt.obstacle] = 0.4
-    x0, y0 = spec.origin
-    extent = (x0, x0 + spec.shape[1] * spec.resolution, y0, y0 + spec.shape[0] * spec.resolution)
+    (x0, y0), (x1, y1) = spec.bounds
+    extent = (x0, x1, y0, y1)
     fig, ax = plt.subplots(figsize=(6, 6 * spec.shape[0] / max(spec.shape[1], 1) + 0.5))
     ax.imshow(img, cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
     traj = np.asarray(record.trajectory)
@@ -347,6 +330,30 @@ def evaluate_navigation(
             sections=["## Episodes\n\n" + table, "## Trajectories\n\n" + pictures],
         )
     return report
+
+
+def evaluate_policy(
+    path: str | Path,
+    episodes: int = 20,
+    scene: str | None = None,
+    seed: int = 1000,
+    out_dir: str | Path | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """The navigation protocol for a trained PPO policy (run directory or model file) in the env it
+    was trained on (scene, backbone, image size and database from its ``config.json``)."""
+    config = ppo.load_config(path)
+    return evaluate_navigation(
+        scene or config["scene"],
+        agent=f"ppo:{ppo.model_path(path)}",
+        backbone=config["backbone"] or "classical",
+        episodes=episodes,
+        seed=seed,
+        size=tuple(config["env_kwargs"]["image_size"]),
+        out_dir=out_dir,
+        progress=progress,
+        database_dir=config.get("database_dir"),
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

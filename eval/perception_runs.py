@@ -56,7 +56,7 @@ RECALL_THRESHOLDS = {
 
 def add_scene_arguments(parser: argparse.ArgumentParser, *, queries: int | None = 50) -> None:
     """``SCENE``, ``--build``, ``--size``, ``--seed``, ``--texture``, ``--out``, ``--queries``."""
-    from vgpnav_env.cli import seed_arg, size_arg
+    from vgpnav_env.arguments import seed_arg, size_arg
 
     parser.add_argument("scene", help="built-in scene name or a scene spec file (ignored with --build)")
     parser.add_argument(

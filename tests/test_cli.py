@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from vgpnav_env import cli
+from vgpnav_env.arguments import size_arg
 
 
 def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
@@ -90,8 +91,20 @@ def test_bad_size(text: str, tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 
 def test_size_arg_parses() -> None:
-    assert cli.size_arg("320x240") == (320, 240)
-    assert cli.size_arg("1920X1080") == (1920, 1080)
+    assert size_arg("320x240") == (320, 240)
+    assert size_arg("1920X1080") == (1920, 1080)
+
+
+def test_command_modules_do_not_import_the_dispatcher() -> None:
+    script = (
+        "import argparse, importlib, sys\n"
+        "from vgpnav_env.cli import COMMANDS\n"
+        "del sys.modules['vgpnav_env.cli']\n"
+        "for module, _ in COMMANDS.values():\n"
+        "    importlib.import_module(module).add_arguments(argparse.ArgumentParser())\n"
+        "assert 'vgpnav_env.cli' not in sys.modules, 'a command module imports vgpnav_env.cli'\n"
+    )
+    subprocess.run([sys.executable, "-c", script], check=True)
 
 
 @pytest.mark.parametrize("text", ["-1", "1.5", "abc", ""])

@@ -19,6 +19,17 @@ from vgpnav_env.grid import (
 SPEC = GridSpec((0.0, 0.0), 0.05, (100, 120))  # 6 m (x) by 5 m (y)
 
 
+def test_bounds_and_centre_enclose_every_cell():
+    spec = GridSpec((-1.0, 2.0), 0.05, (100, 120))
+    lo, hi = spec.bounds
+    np.testing.assert_allclose(lo, (-1.0, 2.0))
+    np.testing.assert_allclose(hi, (5.0, 7.0))
+    np.testing.assert_allclose(spec.centre, (2.0, 4.5))
+    centres = spec.centres().reshape(-1, 2)
+    assert np.all(centres > lo) and np.all(centres < hi)
+    assert spec.contains(spec.world_to_cell(hi - 1e-9)) and not spec.contains(spec.world_to_cell(hi + 1e-9))
+
+
 def open_grid() -> np.ndarray:
     return np.ones(SPEC.shape, bool)
 

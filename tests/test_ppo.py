@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from vgpnav_env.agents.ppo import evaluate_policy, latest_checkpoint, load_config, model_path, train_ppo
+from vgpnav_env.agents.ppo import latest_checkpoint, load_config, model_path, train_ppo
+from vgpnav_env.eval.navigation import evaluate_policy
 
 TINY = {"image_size": (48, 40), "max_steps": 40}
 

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from vgpnav_env.arguments import MAX_IMAGE_SIZE, seed_arg, size_arg
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.groundtruth import ground_truth_map
 from vgpnav_env.render import MujocoRenderer
@@ -60,7 +61,6 @@ from vgpnav_env.trajectories import (
 logger = logging.getLogger(__name__)
 
 DEFAULT_SIZE = (320, 240)
-MAX_SIZE = (1920, 1080)
 #: Ground-truth grid used to plan trajectories (metres; robot radius / height of ``vgpnav_env.robot``).
 GRID_RESOLUTION = 0.05
 #: Trajectory parameters per run kind (keyword arguments of ``coverage_trajectory``).
@@ -88,15 +88,16 @@ LAYOUTS = {"database": "base", "query": "changed"}
 
 
 def check_size(size: tuple[int, int]) -> tuple[int, int]:
-    """Validate an image size (width, height): positive integers up to ``MAX_SIZE``."""
+    """Validate an image size (width, height): positive integers up to ``MAX_IMAGE_SIZE``."""
     try:
         w, h = size
     except (TypeError, ValueError) as e:
         raise ValueError(f"image size must be (width, height), got {size!r}") from e
     if not all(isinstance(v, int | np.integer) and not isinstance(v, bool) for v in (w, h)):
         raise ValueError(f"image size must be integers, got {size!r}")
-    if not (0 < w <= MAX_SIZE[0] and 0 < h <= MAX_SIZE[1]):
-        raise ValueError(f"image size {w}x{h} out of range: width 1-{MAX_SIZE[0]}, height 1-{MAX_SIZE[1]}")
+    max_w, max_h = MAX_IMAGE_SIZE
+    if not (0 < w <= max_w and 0 < h <= max_h):
+        raise ValueError(f"image size {w}x{h} out of range: width 1-{max_w}, height 1-{max_h}")
     return int(w), int(h)
 
 
@@ -281,7 +282,6 @@ def build_runs(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``vgpnav build``."""
-    from vgpnav_env.cli import seed_arg, size_arg
     from vgpnav_env.scenes import BUILTIN_SCENES, TEXTURE_LEVELS
     from vgpnav_env.scenes.lighting import LIGHTING_LEVELS
 

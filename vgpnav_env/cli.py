@@ -8,8 +8,10 @@ module exposes::
     run(args: argparse.Namespace) -> int            # exit code
 
 To add a command, add one line to :data:`COMMANDS`: ``"eval localization": ("module", "help")``
-(two words = a command inside a group). Errors in user input exit with status 2 and one line
-``vgpnav: error: ...`` on stderr; ``-v`` / ``-vv`` log progress / debug details to stderr.
+(two words = a command inside a group). Shared argument types (``size_arg``, ``seed_arg``) are in
+:mod:`vgpnav_env.arguments`, so command modules never import this dispatcher. Errors in user
+input exit with status 2 and one line ``vgpnav: error: ...`` on stderr; ``-v`` / ``-vv`` log
+progress / debug details to stderr.
 """
 
 from __future__ import annotations
@@ -40,7 +42,6 @@ GROUPS: dict[str, str] = {
     "train": "train a navigation policy",
 }
 PROG = "vgpnav"
-MAX_WIDTH, MAX_HEIGHT = 1920, 1080
 
 
 class CliError(Exception):
@@ -56,29 +57,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{PROG}: error: {message} (see '{self.prog} --help')\n")
-
-
-def size_arg(text: str) -> tuple[int, int]:
-    """argparse type for ``WxH`` image sizes (1 <= W <= 1920, 1 <= H <= 1080)."""
-    parts = text.lower().split("x")
-    allowed = f"allowed: WxH with integers 1 <= W <= {MAX_WIDTH}, 1 <= H <= {MAX_HEIGHT}, e.g. 320x240"
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise argparse.ArgumentTypeError(f"malformed size {text!r}; {allowed}")
-    w, h = (int(p) for p in parts)
-    if not (1 <= w <= MAX_WIDTH and 1 <= h <= MAX_HEIGHT):
-        raise argparse.ArgumentTypeError(f"size {text!r} out of range; {allowed}")
-    return w, h
-
-
-def seed_arg(text: str) -> int:
-    """argparse type for seeds: non-negative integers."""
-    try:
-        seed = int(text)
-    except ValueError:
-        seed = -1
-    if seed < 0:
-        raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {text!r}")
-    return seed
 
 
 def _command_help(group: str | None) -> dict[str, str]:

@@ -36,6 +36,18 @@ class GridSpec:
         cols, rows = np.maximum(np.ceil((hi - lo) / resolution).astype(int), 1)
         return cls((float(lo[0]), float(lo[1])), float(resolution), (int(rows), int(cols)))
 
+    @property
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World (x, y) of the grid's two corners: (min, max) in metres."""
+        lo = np.asarray(self.origin, float)
+        return lo, lo + np.asarray(self.shape[::-1], float) * self.resolution
+
+    @property
+    def centre(self) -> NDArray[np.float64]:
+        """World (x, y) of the grid's centre (metres)."""
+        lo, hi = self.bounds
+        return 0.5 * (lo + hi)
+
     def world_to_cell(self, xy: ArrayLike) -> NDArray[np.int64]:
         """Integer (row, col) of world points (..., 2); may be out of bounds (see ``contains``)."""
         xy = np.asarray(xy, float)
@@ -80,8 +92,7 @@ def cell_of(spec: GridSpec, xy: ArrayLike, what: str = "point") -> tuple[int, in
         raise ValueError(f"{what} must be a finite world (x, y), got {xy!r}")
     cell = spec.world_to_cell(xy)
     if not spec.contains(cell):
-        lo = np.asarray(spec.origin)
-        hi = lo + np.array(spec.shape[::-1]) * spec.resolution
+        lo, hi = spec.bounds
         raise ValueError(
             f"{what} {tuple(xy)} is off the grid (x in [{lo[0]}, {hi[0]}), y in [{lo[1]}, {hi[1]}))"
         )

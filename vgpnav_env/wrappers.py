@@ -269,9 +269,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         elif predicted is not None:
             self.estimate = predicted
         else:  # never localized in this episode: nothing better than the map centre
-            spec = self.perceiver.map.spec
-            centre = np.asarray(spec.origin) + 0.5 * np.asarray(spec.shape[::-1]) * spec.resolution
-            self.estimate = np.array([centre[0], centre[1], 0.0])
+            self.estimate = np.array([*self.perceiver.map.spec.centre, 0.0])
         self.estimate = np.clip(self.estimate, self._pose_low, self._pose_high)
         self.last_result = result
         x, y, yaw = self.estimate

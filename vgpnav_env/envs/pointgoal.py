@@ -208,9 +208,7 @@ class PointGoalEnv(gym.Env):
         self.robot = PlanarRobot(self.world.model)
         self._renderer: MujocoRenderer | None = None
 
-        spec = self.world.gt.spec
-        lo = np.asarray(spec.origin, np.float32)
-        hi = lo + np.asarray(spec.shape[::-1], np.float32) * spec.resolution
+        lo, hi = (b.astype(np.float32) for b in self.world.gt.spec.bounds)
         self.observation_space = spaces.Dict(
             {
                 "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
@@ -218,7 +216,7 @@ class PointGoalEnv(gym.Env):
             }
         )
         if action_mode == "discrete":
-            self.action_space: spaces.Space = spaces.Discrete(4)
+            self.action_space: spaces.Space = spaces.Discrete(len(Action))
         else:
             self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
 

@@ -1,0 +1,36 @@
+"""argparse argument types shared by the ``vgpnav`` commands (light: no heavy imports).
+
+A type raises ``argparse.ArgumentTypeError`` with one line saying what was wrong and what is
+allowed; the CLI turns it into ``vgpnav: error: ...`` and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+#: Largest image (width, height) in pixels a build or an env camera may have.
+MAX_IMAGE_SIZE = (1920, 1080)
+
+
+def size_arg(text: str) -> tuple[int, int]:
+    """argparse type for ``WxH`` image sizes (1 <= W <= 1920, 1 <= H <= 1080)."""
+    parts = text.lower().split("x")
+    max_w, max_h = MAX_IMAGE_SIZE
+    allowed = f"allowed: WxH with integers 1 <= W <= {max_w}, 1 <= H <= {max_h}, e.g. 320x240"
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise argparse.ArgumentTypeError(f"malformed size {text!r}; {allowed}")
+    w, h = (int(p) for p in parts)
+    if not (1 <= w <= max_w and 1 <= h <= max_h):
+        raise argparse.ArgumentTypeError(f"size {text!r} out of range; {allowed}")
+    return w, h
+
+
+def seed_arg(text: str) -> int:
+    """argparse type for seeds: non-negative integers."""
+    try:
+        seed = int(text)
+    except ValueError:
+        seed = -1
+    if seed < 0:
+        raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {text!r}")
+    return seed
