@@ -10,39 +10,78 @@ Directory layout::
                                                   "euler": [rx,ry,rz]},
                                          "collision": true}]}   # optional, false: visual only
       layout_<name>.json   further layouts: same keys; missing top-level keys come from layout.json
-      structure.glb        walls + floor (+ ceiling), GLB/GLTF/OBJ/PLY
-      objects/...          one mesh file per object
+      structure.glb        walls + floor (+ ceiling), GLB/GLTF/OBJ(+MTL)/PLY
+      objects/...          one mesh file per object (OBJ + MTL + textures, GLB, ...)
 
 Everything in the JSON is in the file's own frame: an object mesh is centred on its bounds, scaled per
 axis to ``size``, rotated by ``euler`` (extrinsic xyz, radians) and moved to ``centre``; then the whole
 scene is converted to W: ``up: y`` files are rotated to z-up ((x, y, z) -> (x, -z, y)) and every
 coordinate is multiplied by ``scale`` (e.g. 0.01 for centimetres).
 
-Structure parts without a category are classified by shape: thin horizontal parts at the bottom are
-``floor``, at the top ``ceiling``, anything else ``wall``. Collision: convex parts only -- a
-watertight convex component uses its hull; other wall surfaces get a thin box per rectangular
-vertical facet (a thin prism per triangle otherwise); objects use their convex hull.
+Parts and appearance come from ``mesh_files.load_parts`` (one part per node / material, textures
+found however the files name them, opacity kept). Structure parts without a category are
+classified by shape: thin horizontal parts at the bottom are ``floor``, at the top ``ceiling``,
+anything else ``wall``. Collision (``collision.py``, decided by a shape check): a watertight convex
+wall component uses its hull, other wall surfaces a thin box per rectangular vertical facet (a thin
+prism per triangle otherwise); floors, ceilings and trims none. Object parts: solid -> hull, flat ->
+thin box, tiny -> none, degenerate -> the hull of the whole object. Every such fix and every file
+that could not be found goes to the :class:`LoadReport` (``load_mesh_scene(..., report=True)``) and
+to the log (fixes at INFO, missing files as one WARNING each).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from vgpnav_env.scenes.meshes import STRUCTURE_CATEGORIES, load_mesh_file
-from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
+from vgpnav_env.scenes.collision import facet_boxes, is_convex_solid, object_collision, part_collision
+from vgpnav_env.scenes.mesh_files import MeshPart, load_parts, referenced_files
+from vgpnav_env.scenes.meshes import STRUCTURE_CATEGORIES
+from vgpnav_env.scenes.scene import Scene, SceneMesh
 from vgpnav_env.scenes.spec import SceneError
+
+logger = logging.getLogger(__name__)
 
 UP_AXES = ("z", "y")
 _Y_TO_Z = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # file (y up) -> W (z up)
-WALL_SKIN_M = 0.05
+#: (file, name) of missing files already warned about in this process (one warning per file).
+_WARNED: set[tuple[str, str]] = set()
+
+
+@dataclass
+class LoadReport:
+    """What ``load_mesh_scene`` changed to make a directory usable, one line per item."""
+
+    source: str
+    layout: str
+    fixes: list[str] = field(default_factory=list)
+    missing: list[str] = field(default_factory=list)
+
+    def fix(self, line: str) -> None:
+        self.fixes.append(line)
+        logger.info("%s: %s", self.source, line)
+
+    def miss(self, line: str) -> None:
+        self.missing.append(line)
+        logger.warning("%s: %s", self.source, line)
+
+    def __str__(self) -> str:
+        lines = [
+            f"{self.source} (layout {self.layout}): {len(self.fixes)} fixes, {len(self.missing)} missing"
+        ]
+        return "\n".join(
+            lines + [f"  missing: {m}" for m in self.missing] + [f"  fix: {f}" for f in self.fixes]
+        )
 
 
 def mesh_scene_layouts(path: str | Path) -> list[str]:
@@ -64,111 +103,59 @@ def _read_json(path: Path) -> dict[str, Any]:
     return data
 
 
-def _load_parts(path: Path, what: str) -> list[tuple[str, trimesh.Trimesh]]:
-    """(node name, mesh in the file frame) for every geometry in a mesh file."""
-    if not path.is_file():
-        raise SceneError(f"{what}: mesh file {path} does not exist")
-    try:
-        loaded = trimesh.load(str(path), process=False)
-    except Exception as e:  # trimesh raises many exception types for bad files
-        raise SceneError(f"{what}: cannot load mesh file {path}: {e}") from None
-    if isinstance(loaded, trimesh.Trimesh):
-        return [(path.stem, loaded)]
-    if not isinstance(loaded, trimesh.Scene):
-        return [(path.stem, load_mesh_file(path, what))]
-    parts = []
-    for node in loaded.graph.nodes_geometry:
-        T, geom = loaded.graph[node]
-        g = loaded.geometry[geom]
-        if isinstance(g, trimesh.Trimesh) and len(g.faces):
-            parts.append((str(node), g.copy().apply_transform(T)))
-    if not parts:
-        raise SceneError(f"{what}: mesh file {path} holds no triangles")
-    return parts
+def mesh_scene_files(path: str | Path) -> list[Path]:
+    """Every file a mesh-scene directory's scenes depend on: ``layout*.json``, the structure and
+    object mesh files they name, and the files those name (MTL libraries, textures, glTF buffers)."""
+    root = Path(path)
+    layouts = [root / "layout.json"] + sorted(root.glob("layout_*.json"))
+    meshes: dict[Path, None] = {}
+    for f in layouts:
+        data = _read_json(f)
+        if isinstance(data.get("structure"), str):
+            meshes[root / data["structure"]] = None
+        for o in data.get("objects", []) if isinstance(data.get("objects"), list) else []:
+            if isinstance(o, dict) and isinstance(o.get("mesh"), str):
+                meshes[root / o["mesh"]] = None
+    files = list(layouts)
+    for m in meshes:
+        files.append(m)
+        if m.is_file():
+            files += referenced_files(m)[0]
+    return list(dict.fromkeys(files))
 
 
-def _material(mesh: trimesh.Trimesh, name: str) -> Material:
-    """The mesh's own appearance as a Material (texture image with tile_m 1: its UVs are kept)."""
-    vis = mesh.visual
-    if isinstance(vis, trimesh.visual.TextureVisuals) and vis.material is not None:
-        mat = vis.material
-        img = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
-        if img is not None and vis.uv is not None:
-            image = np.asarray(img.convert("RGB"), dtype=np.uint8)
-            mean = image.reshape(-1, 3).mean(axis=0) / 255.0
-            return Material(name=name, rgba=(*map(float, mean), 1.0), image=image, tile_m=1.0)
-        colour = getattr(mat, "baseColorFactor", None)
-        if colour is None:
-            colour = getattr(mat, "diffuse", None)
-        if colour is not None:
-            c = np.asarray(colour, float).ravel()[:4] / 255.0
-            return Material(name=name, rgba=(float(c[0]), float(c[1]), float(c[2]), 1.0))
-    if isinstance(vis, trimesh.visual.ColorVisuals) and vis.kind is not None:
-        c = np.asarray(vis.main_color, float) / 255.0
-        return Material(name=name, rgba=(float(c[0]), float(c[1]), float(c[2]), 1.0))
-    return Material(name=name)
+def mesh_scene_digest(path: str | Path) -> str:
+    """SHA-256 over :func:`mesh_scene_files` (names and contents; a missing file counts as missing)."""
+    root = Path(path)
+    h = hashlib.sha256()
+    for f in mesh_scene_files(root):
+        name = f.relative_to(root).as_posix() if f.is_relative_to(root) else str(f)
+        content = hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else "<missing>"
+        h.update(f"{name}\0{content}\n".encode())
+    return h.hexdigest()
 
 
-def _to_world(m: trimesh.Trimesh, up: str, scale: float) -> trimesh.Trimesh:
+def _load(path: Path, what: str, prefix: str, report: LoadReport, root: Path) -> list[MeshPart]:
+    loaded = load_parts(path, what, prefix)
+    rel = path.relative_to(root).as_posix() if path.is_relative_to(root) else str(path)
+    for name in loaded.missing:
+        if (rel, name) in _WARNED:  # another layout of the same files: warned already
+            report.missing.append(f"{rel}: file {name!r} not found")
+            continue
+        _WARNED.add((rel, name))
+        report.miss(
+            f"{rel}: file {name!r} not found (looked beside the file, in any case and below its folder)"
+        )
+    for note in loaded.notes:
+        report.fix(f"{rel}: {note}")
+    return loaded.parts
+
+
+def _file_to_world(up: str, scale: float) -> NDArray[np.float64]:
+    """4x4 map from the files' frame and units to W."""
     T = np.eye(4)
     T[:3, :3] = (_Y_TO_Z if up == "y" else np.eye(3)) * scale
-    return m.copy().apply_transform(T)
-
-
-def _is_convex(m: trimesh.Trimesh) -> bool:
-    if not m.is_watertight or m.volume <= 0:
-        return False
-    try:
-        return bool(abs(m.volume) >= 0.97 * m.convex_hull.volume)
-    except Exception:  # qhull fails on degenerate input
-        return False
-
-
-def _facet_boxes(m: trimesh.Trimesh) -> list[trimesh.Trimesh]:
-    """Thin convex solids behind the vertical surfaces of a (possibly open, non-convex) wall mesh."""
-    out = []
-    vertical = np.abs(m.face_normals[:, 2]) < 0.3
-    groups = [list(f) for f in m.facets] + [
-        [i] for i in set(range(len(m.faces))) - {i for f in m.facets for i in f}
-    ]
-    for faces in groups:
-        if not vertical[faces[0]]:
-            continue
-        n = m.face_normals[faces[0]]
-        t1 = np.cross([0.0, 0.0, 1.0], n)
-        t1 /= np.linalg.norm(t1)
-        pts = m.vertices[m.faces[faces].ravel()]
-        u, z = pts @ t1, pts[:, 2]
-        area = float(m.area_faces[faces].sum())
-        rect = (u.max() - u.min()) * (z.max() - z.min())
-        if area < 1e-4:
-            continue
-        if area >= 0.95 * rect:
-            centre = t1 * (u.max() + u.min()) / 2 + n * float(pts[0] @ n - WALL_SKIN_M / 2)
-            centre[2] = (z.max() + z.min()) / 2
-            T = np.eye(4)
-            T[:3, :3] = np.column_stack([t1, n, [0.0, 0.0, 1.0]])
-            T[:3, 3] = centre
-            out.append(
-                trimesh.creation.box(extents=(u.max() - u.min(), WALL_SKIN_M, z.max() - z.min()), transform=T)
-            )
-        else:
-            for f in faces:
-                tri = m.vertices[m.faces[f]]
-                out.append(
-                    trimesh.Trimesh(np.concatenate([tri, tri - n * WALL_SKIN_M]), process=True).convex_hull
-                )
-    return out
-
-
-def _hull(m: trimesh.Trimesh) -> list[trimesh.Trimesh]:
-    try:
-        return [m.convex_hull]
-    except Exception:  # flat or degenerate: fall back to the bounding box
-        lo, hi = m.bounds
-        T = np.eye(4)
-        T[:3, 3] = (lo + hi) / 2
-        return [trimesh.creation.box(extents=np.maximum(hi - lo, 0.01), transform=T)]
+    return T
 
 
 def _classify(m: trimesh.Trimesh, zmin: float, zmax: float) -> str:
@@ -181,28 +168,44 @@ def _classify(m: trimesh.Trimesh, zmin: float, zmax: float) -> str:
     return "wall"
 
 
+def _wall_collision(name: str, m: trimesh.Trimesh, report: LoadReport) -> list[trimesh.Trimesh]:
+    out: list[trimesh.Trimesh] = []
+    open_parts = 0
+    solid = trimesh.Trimesh(m.vertices, m.faces, process=True)  # vertices split at UV seams merged
+    for c in solid.split(only_watertight=False) or [solid]:
+        if is_convex_solid(c):
+            out.append(trimesh.convex.convex_hull(c.vertices))
+        else:
+            open_parts += 1
+            out += facet_boxes(c)
+    if open_parts:
+        report.fix(
+            f"wall {name}: {open_parts} open or non-convex parts -> {len(out)} convex parts behind its faces"
+        )
+    return out
+
+
 def _structure_meshes(
-    parts: list[tuple[str, trimesh.Trimesh]], categories: dict[str, str], tag: str
+    parts: list[MeshPart], categories: dict[str, str], report: LoadReport
 ) -> list[SceneMesh]:
-    pieces: list[tuple[str, trimesh.Trimesh]] = []
-    for name, m in parts:
-        if name in categories or len(parts) > 1:
-            pieces.append((name, m))
+    pieces: list[MeshPart] = []
+    for p in parts:
+        if p.name in categories or len(parts) > 1:
+            pieces.append(p)
+            continue
+        comps = p.mesh.split(only_watertight=False)
+        if len(comps) > 1:
+            pieces += [MeshPart(f"{p.name}_{i}", c, p.material) for i, c in enumerate(comps)]
         else:
-            comps = m.split(only_watertight=False)
-            pieces += [(f"{name}_{i}", c) for i, c in enumerate(comps)] if len(comps) > 1 else [(name, m)]
-    zmin = min(m.bounds[0, 2] for _, m in pieces)
-    zmax = max(m.bounds[1, 2] for _, m in pieces)
+            pieces.append(p)
+    zmin = min(p.mesh.bounds[0, 2] for p in pieces)
+    zmax = max(p.mesh.bounds[1, 2] for p in pieces)
     out = []
-    for name, m in pieces:
-        cat = categories.get(name) or _classify(m, zmin, zmax)
-        if cat in ("floor", "ceiling", "trim"):
-            collision: list[trimesh.Trimesh] = []
-        else:
-            comps = m.split(only_watertight=False) or [m]
-            collision = [h for c in comps for h in (_hull(c) if _is_convex(c) else _facet_boxes(c))]
-        mesh_name = name if name.startswith(f"{cat}/") else f"{cat}/{name}"
-        out.append(SceneMesh(mesh_name, cat, m, _material(m, f"{tag}/{mesh_name}"), collision))
+    for p in pieces:
+        cat = categories.get(p.name) or _classify(p.mesh, zmin, zmax)
+        mesh_name = p.name if p.name.startswith(f"{cat}/") else f"{cat}/{p.name}"
+        collision = [] if cat in ("floor", "ceiling", "trim") else _wall_collision(mesh_name, p.mesh, report)
+        out.append(SceneMesh(mesh_name, cat, p.mesh, p.material, collision))
     return out
 
 
@@ -218,15 +221,65 @@ def _bbox(entry: dict, where: str) -> tuple[NDArray, NDArray, NDArray]:
         raise SceneError(
             f"{where}: bbox needs 'centre' and 'size' as 3 numbers (and optional 'euler'): {e}"
         ) from None
-    if np.any(size <= 0):
-        raise SceneError(f"{where}: bbox size must be positive, got {size.tolist()}")
+    if np.any(size <= 0) or not np.all(np.isfinite(np.concatenate([centre, size, euler]))):
+        raise SceneError(f"{where}: bbox size must be positive and finite, got {size.tolist()}")
     return centre, size, euler
 
 
+def _object_meshes(
+    root: Path, entry: dict, where: str, up: str, scale: float, report: LoadReport
+) -> list[SceneMesh]:
+    """The SceneMeshes of one layout object: ``<name>`` for its first part, ``<name>/<part>`` others."""
+    centre, size, euler = _bbox(entry, where)
+    name, cat = str(entry["name"]), str(entry.get("category", "object"))
+    raw = _load(root / entry["mesh"], where, f"{root.name}/{name}/", report, root)
+    lo = np.min([p.mesh.bounds[0] for p in raw], axis=0)
+    hi = np.max([p.mesh.bounds[1] for p in raw], axis=0)
+    flat_axes = hi - lo < 1e-9
+    if flat_axes.any():
+        report.fix(
+            f"object {name}: zero extent along axes {np.flatnonzero(flat_axes).tolist()} -> not scaled there"
+        )
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", euler).as_matrix() @ np.diag(
+        np.where(flat_axes, 1.0, size / np.maximum(hi - lo, 1e-9))
+    )
+    T[:3, 3] = centre - T[:3, :3] @ ((lo + hi) / 2)
+    world = [p.mesh.apply_transform(_file_to_world(up, scale) @ T) for p in raw]  # fresh meshes: in place
+    collide = bool(entry.get("collision", True))
+    out, whole = [], False
+    for k, (p, mw) in enumerate(zip(raw, world, strict=True)):
+        mesh_name = name if k == 0 else f"{name}/{p.name}"
+        collision: list[trimesh.Trimesh] = []
+        if collide:
+            collision, kind, note = part_collision(mw)
+            whole |= kind in ("line", "empty")
+            if note:
+                report.fix(f"{mesh_name}: {note}")
+        out.append(SceneMesh(mesh_name, cat, mw, p.material, collision))
+    if whole:
+        out[0].collision = out[0].collision + object_collision(world)
+    return out
+
+
+@overload
+def load_mesh_scene(path: str | Path, *args: Any, report: Literal[False] = ..., **kwargs: Any) -> Scene: ...
+@overload
 def load_mesh_scene(
-    path: str | Path, up: str | None = None, scale: float | None = None, layout: str = "base"
-) -> Scene:
-    """A mesh-scene directory as a ``Scene`` in W (texture level ``native``: the files' own appearance)."""
+    path: str | Path, *args: Any, report: Literal[True], **kwargs: Any
+) -> tuple[Scene, LoadReport]: ...
+def load_mesh_scene(
+    path: str | Path,
+    up: str | None = None,
+    scale: float | None = None,
+    layout: str = "base",
+    *,
+    report: bool = False,
+) -> Scene | tuple[Scene, LoadReport]:
+    """A mesh-scene directory as a ``Scene`` in W (texture level ``native``: the files' own appearance).
+
+    ``report=True`` also returns the :class:`LoadReport` (every fix made, every file not found).
+    """
     root = Path(path)
     main = _read_json(root / "layout.json")
     if layout == "base":
@@ -244,11 +297,11 @@ def load_mesh_scene(
         raise SceneError(f"{root}: scale must be positive, got {scale}")
     if "structure" not in data:
         raise SceneError(f"{root}/layout.json: missing 'structure' (the walls + floor mesh file)")
-    tag = root.name
-    parts = [
-        (n, _to_world(m, up, scale)) for n, m in _load_parts(root / data["structure"], f"{root}: structure")
-    ]
-    meshes = _structure_meshes(parts, dict(data.get("structure_categories", {})), tag)
+    rep = LoadReport(str(root), layout)
+    parts = _load(root / data["structure"], f"{root}: structure", f"{root.name}/structure/", rep, root)
+    for p in parts:
+        p.mesh.apply_transform(_file_to_world(up, scale))  # fresh meshes: in place
+    meshes = _structure_meshes(parts, dict(data.get("structure_categories", {})), rep)
     objects = data.get("objects", [])
     if not isinstance(objects, list):
         raise SceneError(f"{root}: 'objects' must be a list")
@@ -256,20 +309,16 @@ def load_mesh_scene(
         where = f"{root}: objects[{i}]"
         if not isinstance(entry, dict) or "name" not in entry or "mesh" not in entry:
             raise SceneError(f"{where}: needs 'name', 'mesh', 'bbox' (and optional 'category')")
-        centre, size, euler = _bbox(entry, where)
-        raw = _load_parts(root / entry["mesh"], where)
-        lo = np.min([m.bounds[0] for _, m in raw], axis=0)
-        hi = np.max([m.bounds[1] for _, m in raw], axis=0)
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_euler("xyz", euler).as_matrix() @ np.diag(size / np.maximum(hi - lo, 1e-9))
-        T[:3, 3] = centre - T[:3, :3] @ ((lo + hi) / 2)
-        for k, (pname, m) in enumerate(raw):
-            mw = _to_world(m.copy().apply_transform(T), up, scale)
-            name = str(entry["name"]) if k == 0 else f"{entry['name']}/{pname}"
-            cat = str(entry.get("category", "object"))
-            collision = _hull(mw) if entry.get("collision", True) else []
-            meshes.append(SceneMesh(name, cat, mw, _material(mw, f"{tag}/{name}"), collision))
-    return Scene(name=tag, layout=layout, texture="native", meshes=meshes)
+        meshes += _object_meshes(root, entry, where, up, scale, rep)
+    scene = Scene(name=root.name, layout=layout, texture="native", meshes=meshes)
+    logger.info(
+        "%s: loaded %d meshes, %d fixes, %d files missing",
+        root,
+        len(meshes),
+        len(rep.fixes),
+        len(rep.missing),
+    )
+    return (scene, rep) if report else scene
 
 
 def _safe(name: str) -> str:

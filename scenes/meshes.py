@@ -14,6 +14,7 @@ texture tile always covers ``tile_m`` metres and never stretches on narrow faces
 
 from __future__ import annotations
 
+import logging
 import math
 import zlib
 from pathlib import Path
@@ -24,7 +25,9 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from vgpnav_env.geometry import make_pose
+from vgpnav_env.scenes.collision import object_collision
 from vgpnav_env.scenes.materials import make_material
+from vgpnav_env.scenes.mesh_files import load_parts
 from vgpnav_env.scenes.primitives import FITTED_ROLES, Part, primitive_parts, role_materials
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 from vgpnav_env.scenes.spec import ObjectSpec, RoomSpec, SceneError, SceneSpec, WallSpec
@@ -32,6 +35,8 @@ from vgpnav_env.scenes.spec import ObjectSpec, RoomSpec, SceneError, SceneSpec, 
 SLAB_M = 0.02
 STRUCTURE_CATEGORIES = ("floor", "ceiling", "wall", "trim")
 TRIM_MATERIAL = "wood:white"
+
+logger = logging.getLogger(__name__)
 
 
 def object_of(mesh_name: str) -> str:
@@ -77,15 +82,19 @@ def textured(
 
 
 def with_texture(mesh: trimesh.Trimesh, uv: NDArray, material: Material) -> trimesh.Trimesh:
-    """Attach ``TextureVisuals`` (uv in tiles, the material's image) to a mesh in place and return it."""
+    """Attach ``TextureVisuals`` (uv in tiles, the material's image) to a mesh in place and return it.
+
+    The glTF material says what MuJoCo draws: ``baseColorFactor`` = ``material.rgba``, which
+    multiplies the texture (``alphaMode`` BLEND below full opacity).
+    """
     image = Image.fromarray(np.asarray(material.image)) if material.image is not None else None
-    rgba = (1.0, 1.0, 1.0, 1.0) if image is not None else material.rgba
     mat = trimesh.visual.material.PBRMaterial(
         name=material.name,
         baseColorTexture=image,
-        baseColorFactor=np.round(np.asarray(rgba) * 255).astype(np.uint8),
+        baseColorFactor=np.round(np.asarray(material.rgba) * 255).astype(np.uint8),
         metallicFactor=0.0,
         roughnessFactor=0.9,
+        alphaMode="BLEND" if material.rgba[3] < 1.0 else "OPAQUE",
     )
     mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=mat)
     return mesh
@@ -146,54 +155,33 @@ def _primitive_meshes(o: ObjectSpec, level: str, spec_seed: int) -> list[SceneMe
     return out
 
 
-def load_mesh_file(path: str | Path, what: str) -> trimesh.Trimesh:
-    """Load a mesh file (GLB/GLTF/OBJ/PLY/STL...) as one Trimesh; ``SceneError`` if unreadable."""
-    try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as e:  # trimesh raises many exception types for bad files
-        raise SceneError(f"{what}: cannot load mesh file {path}: {e}") from None
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise SceneError(f"{what}: mesh file {path} holds no triangles")
-    return loaded
-
-
-def material_from_visual(
-    mesh: trimesh.Trimesh, name: str, fallback: Material
-) -> tuple[Material, NDArray | None]:
-    """(Material, uv) from a loaded mesh's own texture, or (fallback, None) if it has none."""
-    vis = mesh.visual
-    if (
-        isinstance(vis, trimesh.visual.TextureVisuals)
-        and vis.uv is not None
-        and len(vis.uv) == len(mesh.vertices)
-    ):
-        mat = vis.material
-        img = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
-        if img is not None:
-            image = np.asarray(img.convert("RGB"), dtype=np.uint8)
-            mean = image.reshape(-1, 3).mean(axis=0) / 255.0
-            m = Material(name=name, rgba=(*map(float, mean), 1.0), image=image, tile_m=1.0)
-            return m, np.asarray(vis.uv, float)
-    return fallback, None
-
-
 def _mesh_object(o: ObjectSpec, spec: SceneSpec, level: str) -> list[SceneMesh]:
+    """A ``mesh:`` object: every part of the file (one per material) fitted together into ``size``
+    (centred on x/y, base at z = 0); parts with their own texture keep it and their UVs, the others
+    get ``material`` box-projected; one convex collision part (checked) for the whole object."""
     path = Path(spec.base_dir) / str(o.mesh)
-    raw = load_mesh_file(path, f"{spec.source}: object {o.name!r}")
-    size = np.asarray(o.size, float)
-    lo, hi = raw.bounds
-    scale = size / np.maximum(hi - lo, 1e-9)
+    what = f"{spec.source}: object {o.name!r}"
+    loaded = load_parts(path, what, f"mesh:{o.name}/")
+    for name in loaded.missing:
+        logger.warning("%s: file %r named in %s not found; plain colour used", what, name, path)
+    lo = np.min([p.mesh.bounds[0] for p in loaded.parts], axis=0)
+    hi = np.max([p.mesh.bounds[1] for p in loaded.parts], axis=0)
+    scale = np.asarray(o.size, float) / np.maximum(hi - lo, 1e-9)
     offset = -np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    local = trimesh.Trimesh((raw.vertices + offset) * scale, raw.faces, process=False)
     T = _object_pose(o)
     fallback = make_material(o.material or "plastic:grey", level, spec.seed)
-    material, uv = material_from_visual(raw, f"mesh:{o.name}", fallback)
-    if uv is None:
-        surf = textured(local, material, T)
-    else:
-        surf = with_texture(local.copy().apply_transform(T), uv, material)
-    hull = local.convex_hull.apply_transform(T)
-    return [SceneMesh(name=o.name, category=o.category, mesh=surf, material=material, collision=[hull])]
+    out = []
+    for k, p in enumerate(loaded.parts):
+        local = trimesh.Trimesh((p.mesh.vertices + offset) * scale, p.mesh.faces, process=False)
+        material = p.material if p.material.image is not None else fallback
+        if p.material.image is not None:
+            surf = with_texture(local.apply_transform(T), np.asarray(p.mesh.visual.uv, float), material)
+        else:
+            surf = textured(local, material, T)
+        name = o.name if k == 0 else f"{o.name}/{p.name}"
+        out.append(SceneMesh(name=name, category=o.category, mesh=surf, material=material))
+    out[0].collision = object_collision([m.mesh for m in out])
+    return out
 
 
 def _triangulate(poly: NDArray) -> NDArray:

@@ -4,9 +4,13 @@ Contract of the model built here:
 
 - Every ``SceneMesh`` is one visual mesh geom in the world body: group 0, no contacts
   (contype = conaffinity = 0), texture coordinates from the mesh UVs (tiles, texrepeat 1).
+  Its material's ``rgba`` multiplies the texture; alpha < 1 (glass) is drawn transparent.
+  A surface without area is skipped (MuJoCo refuses it).
 - Every convex collision part is one geom (a ``box`` where the part is a box, else a
   ``mesh``) in group ``COLLISION_GROUP`` (3, hidden by the renderers), contype =
-  conaffinity = 1. The floor has no collision part: a robot stands on it by its joints.
+  conaffinity = 1; a part that is not a full-dimensional solid becomes a thin box (flat) or
+  is dropped (``collision.shape_of``), so the model always compiles. The floor has no
+  collision part: a robot stands on it by its joints.
 - A world camera ``RENDER_CAMERA`` that renderers place anywhere (``vgpnav_env.render``).
 - Lights from ``vgpnav_env.scenes.lighting.LIGHTING_PRESETS[scene.lighting]``: the preset's
   ambient and diffuse headlight, and its ``room_diffuse`` as two tilted directional lights
@@ -31,6 +35,7 @@ import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from vgpnav_env.scenes.collision import shape_of, thin_box
 from vgpnav_env.scenes.lighting import LIGHTING_PRESETS, LightingPreset
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 
@@ -40,6 +45,8 @@ RENDER_CAMERA = "vgpnav_render"
 VISUAL_GROUP = 0
 COLLISION_GROUP = 3
 ZNEAR_M = 0.05
+#: Visual meshes with less area than this (m^2) are not drawn (MuJoCo refuses them).
+MIN_AREA_M2 = 1e-12
 
 
 #: Directions (W) of the two directional lights that carry a preset's ``room_diffuse`` (half each).
@@ -135,11 +142,20 @@ def _box_of(part: trimesh.Trimesh) -> tuple[NDArray, NDArray, NDArray] | None:
 
 
 def _add_visual(spec: mujoco.MjSpec, sm: SceneMesh, material: str, used: set[str]) -> None:
+    """One visual mesh geom; a surface MuJoCo cannot hold (no area) is skipped with a warning, and a
+    single triangle gets a fourth (repeated, unused) vertex, as MuJoCo needs four."""
+    vertices = np.asarray(sm.mesh.vertices, float)
+    if len(sm.mesh.faces) == 0 or float(sm.mesh.area) <= MIN_AREA_M2:
+        logger.warning("mesh %r has no surface area; not drawn", sm.name)
+        return
+    uv = _mesh_uv(sm)
+    if len(vertices) < 4:
+        vertices = np.concatenate([vertices, vertices[:1]])
+        uv = None if uv is None else np.concatenate([uv, uv[:1]])
     mesh_name = _unique_name(f"vis_{sm.name}", used)
     mesh = spec.add_mesh(name=mesh_name)
-    mesh.uservert = np.asarray(sm.mesh.vertices, float).reshape(-1)
+    mesh.uservert = vertices.reshape(-1)
     mesh.userface = np.asarray(sm.mesh.faces, np.int32).reshape(-1)
-    uv = _mesh_uv(sm)
     if uv is not None:
         # trimesh/OBJ UVs have v up from the image bottom; MuJoCo samples rows from the top.
         mesh.usertexcoord = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1).reshape(-1)
@@ -155,8 +171,24 @@ def _add_visual(spec: mujoco.MjSpec, sm: SceneMesh, material: str, used: set[str
     geom.mass = 0.0
 
 
+def _collision_parts(sm: SceneMesh) -> list[trimesh.Trimesh]:
+    """``sm.collision`` as parts MuJoCo compiles: boxes and solid hulls pass, a flat part becomes a thin
+    box, a tiny or degenerate one is dropped (with a warning: loaders should not hand these over)."""
+    out = []
+    for part in sm.collision:
+        shape = shape_of(part.vertices)
+        if shape.kind == "solid":
+            out.append(part)
+        elif shape.kind == "flat":
+            logger.warning("collision part of %r is flat; using a thin box", sm.name)
+            out.append(thin_box(part.vertices, shape))
+        else:
+            logger.warning("collision part of %r is %s; dropped", sm.name, shape.kind)
+    return out
+
+
 def _add_collision(spec: mujoco.MjSpec, sm: SceneMesh, used: set[str]) -> None:
-    for i, part in enumerate(sm.collision):
+    for i, part in enumerate(_collision_parts(sm)):
         name = _unique_name(f"col_{sm.name}_{i}", used)
         box = _box_of(part)
         if box is not None:

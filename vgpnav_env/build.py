@@ -116,8 +116,13 @@ def default_build_dir(
 
 
 def _source_digest(source: str) -> str | None:
-    """SHA-256 of a spec file or a built-in's spec (so an edited spec invalidates its builds); else None."""
+    """SHA-256 of a spec file, a built-in's spec, or a mesh-scene directory's layouts and every file
+    they reference (meshes, MTL, textures), so an edited source invalidates its builds; else None."""
     path = Path(source)
+    if path.is_dir():
+        from vgpnav_env.scenes.mesh_scene import mesh_scene_digest
+
+        return mesh_scene_digest(path)
     if not path.is_file():
         path = BUILTIN_DIR / f"{source.partition(':')[0]}.yaml"
         if ":" in source or not path.is_file():
@@ -254,7 +259,7 @@ def build_runs(
         "width": size[0],
         "height": size[1],
         "seed": seed,
-        "texture": texture,
+        "texture": scenes["database"].texture,
         "fovy_deg": float(fovy_deg),
         "query_lighting": query_lighting,
         "run_format_version": RUN_VERSION,
