@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.perception.backbones.planar_fill import PlanarFillConfig, planar_fill
+from vgpnav_env.perception.backbones.threads import resolve_threads, thread_map
 
 
 @dataclass(frozen=True)
@@ -90,22 +91,40 @@ def best_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
     """Per pixel, the mean of the ``keep`` largest finite values along axis 0 (NaN if none).
 
     Occlusion-robust aggregation of per-reference NCC: a reference that sees an occluder at a
-    pixel is dropped as long as ``keep`` others see it. The smallest values are moved to the end
-    by bubble passes of element-wise min / max (a few array operations for the handful of
-    references; numpy's sort and partition along a short leading axis were slower).
+    pixel is dropped as long as ``keep`` others see it. See :func:`top_mean` (-inf marks unseen).
     """
-    seen = np.isfinite(values)
-    ordered = list(np.where(seen, values, -np.inf))
-    for last in range(len(ordered) - 1, keep - 1, -1):
-        for i in range(last):
-            ordered[i], ordered[i + 1] = (
-                np.maximum(ordered[i], ordered[i + 1]),
-                np.minimum(ordered[i], ordered[i + 1]),
-            )
-    top = np.stack(ordered[:keep]) if ordered else np.full((1, *values.shape[1:]), -np.inf)
-    top_seen = np.isfinite(top)
+    return top_mean(np.where(np.isfinite(values), values, -np.inf).astype(np.float32), keep)
+
+
+def top_mean(values: NDArray[np.float32], keep: int) -> NDArray[np.float32]:
+    """Per pixel, the mean of the ``keep`` largest values > -inf along axis 0 (NaN if none).
+
+    The ``keep`` largest values so far are updated reference by reference with element-wise max /
+    min into preallocated arrays (a few array operations for the handful of references; numpy's
+    sort and partition along a short leading axis were slower).
+    """
+    keep = min(keep, len(values))
+    shape = values.shape[1:]
+    if keep < 1:
+        return np.full(shape, np.nan, np.float32)
+    tops = [values[0].copy(), *(np.full(shape, -np.inf, np.float32) for _ in range(keep - 1))]
+    spare = [np.empty(shape, np.float32) for _ in range(min(keep - 1, 2))]
+    for v in values[1:]:
+        carry = v
+        for j in range(keep - 1):
+            low = spare[j % 2]  # never the array ``carry`` refers to
+            np.minimum(tops[j], carry, out=low)
+            np.maximum(tops[j], carry, out=tops[j])
+            carry = low
+        np.maximum(tops[-1], carry, out=tops[-1])
+    total = np.zeros(shape, np.float32)
+    count = np.zeros(shape, np.float32)
+    for t in tops:
+        seen = t > -np.inf
+        total += np.where(seen, t, np.float32(0.0))
+        count += seen
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (np.where(top_seen, top, 0.0).sum(axis=0) / top_seen.sum(axis=0)).astype(np.float32)
+        return total / count
 
 
 def speckles(
@@ -126,12 +145,14 @@ def plane_sweep(
     camera: PinholeCamera,
     sparse_depths: NDArray[np.float64],
     config: SweepConfig | None = None,
+    threads: int = 1,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Query depth (H, W) and confidence from an NCC sweep of fronto-parallel inverse-depth planes.
 
     A plane ``z = d`` in the query frame induces ``x_i ~ K (R + t n^T / d) K^-1 x_q``; each
-    reference is warped onto the query per plane, scored by windowed NCC (NaN where the
-    reference does not see the pixel) and averaged over the references that do.
+    reference is warped onto the query per plane, scored by windowed NCC (unseen where the
+    reference does not see the pixel) and averaged over the best references that do. The planes
+    are scored in chunks on ``threads`` threads (<= 0: all cores; the result does not depend on it).
     """
     cfg = config or SweepConfig()
     w = max(8, round(camera.width * cfg.scale))
@@ -139,75 +160,33 @@ def plane_sweep(
     small = camera.resized(w, h)
     K, K_inv = small.K, np.linalg.inv(small.K)
     windows = [cfg.ncc_window] + ([cfg.check_window] if cfg.check_window else [])
-    g = max(windows) // 2
 
     def prepare(image: NDArray[np.uint8]) -> NDArray[np.float32]:
         return cv2.resize(grayscale(image), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
 
     q = prepare(query)
     refs = [prepare(r) for r in references]
-    lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
-    d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
-    inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.planes)
-    near = cfg.near_depth_factor * float(np.median(sparse_depths))
-    if 0 < near < d_min:
-        # Surfaces nearer than the sparse points (a wall beside the robot) get coarser planes: the
-        # depth error of one inverse-depth step shrinks with the square of the depth.
-        coarse = cfg.near_plane_step * (inv_depths[0] - inv_depths[1])
-        inv_depths = np.concatenate(
-            [np.arange(1.0 / near, inv_depths[0] + 0.5 * coarse, -coarse)[:-1], inv_depths]
-        )
+    inv_depths = sweep_planes(sparse_depths, cfg)
     n = np.array([0.0, 0.0, 1.0])
-    keep = min(cfg.keep_best, len(refs))
-    # All references are filtered at once, stacked in one tall image; each is padded by g mirrored
-    # rows (OpenCV's default border) so that no window reaches into the next reference and the NCC
-    # equals the per-image one.
-    rows = [slice(r * (h + 2 * g) + g, r * (h + 2 * g) + g + h) for r in range(len(refs))]
-
-    def stack(images: list[NDArray[np.float32]]) -> NDArray[np.float32]:
-        return np.concatenate([cv2.copyMakeBorder(i, g, g, 0, 0, cv2.BORDER_REFLECT_101) for i in images])
-
-    stacked_q = stack([q] * len(refs))
-    query_stats = []
-    for size in windows:
-        mu_q = cv2.boxFilter(q, -1, (size, size))
-        var_q = np.maximum(cv2.boxFilter(q * q, -1, (size, size)) - mu_q * mu_q, 0.0)
-        query_stats.append((stack([mu_q] * len(refs)), stack([var_q] * len(refs)), var_q))
+    # (planes, refs, 3, 3) homographies mapping query pixels into each reference.
+    R, t = T_iq[:, :3, :3], T_iq[:, :3, 3]
+    homographies = K @ (R[None] + (t[:, :, None] * n)[None] * inv_depths[:, None, None, None]) @ K_inv
+    stack = _RefStack(q, len(refs), windows)
     scores = np.empty((len(windows), len(inv_depths), h, w), np.float32)
-    for p, inv_d in enumerate(inv_depths):
-        views = []
-        for ref, T in zip(refs, T_iq, strict=True):
-            H = K @ (T[:3, :3] + np.outer(T[:3, 3], n) * inv_d) @ K_inv
-            views.append(
-                cv2.warpPerspective(
-                    ref,
-                    H,
-                    (w, h),
-                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=float("nan"),
-                )
-            )
-        warped = stack(views)
-        # Box filters keep running sums along rows, so one NaN would blank the rest of its row (a
-        # reference leaving the view on the left hid the whole image): zero the unseen pixels and
-        # mark windows that reach them instead.
-        unseen = np.isnan(warped)
-        warped[unseen] = 0.0
-        seen = (~unseen).view(np.uint8)
-        products = (warped, warped * warped, stacked_q * warped)
-        for k, (size, (mu_q, var_q, _)) in enumerate(zip(windows, query_stats, strict=True)):
-            if k == 1 and p % cfg.check_plane_stride:
-                continue
-            mu_w, sq_w, qw = (cv2.boxFilter(x, -1, (size, size)) for x in products)
-            ncc = (qw - mu_q * mu_w) / np.sqrt(var_q * np.maximum(sq_w - mu_w * mu_w, 0.0) + 1e-3)
-            ncc[~cv2.erode(seen, np.ones((size, size), np.uint8), borderValue=1).view(bool)] = np.nan
-            scores[k, p] = best_mean(np.stack([ncc[r] for r in rows]), keep)
 
-    inv_depth, conf_small, visible = winner_take_all(scores[0], inv_depths, query_stats[0][2], cfg)
+    def score(chunk: range) -> None:
+        buffers = stack.buffers()
+        for p in chunk:
+            windows_now = [k for k in range(len(windows)) if k == 0 or p % cfg.check_plane_stride == 0]
+            stack.score(refs, homographies[p], windows_now, min(cfg.keep_best, len(refs)), buffers, scores, p)
+
+    n_chunks = 1 if resolve_threads(threads) <= 1 else 4 * resolve_threads(threads)
+    thread_map(score, _chunks(len(inv_depths), n_chunks), threads)
+    query_var = [var for _, var in stack.query_stats]
+    inv_depth, conf_small, visible = winner_take_all(scores[0], inv_depths, query_var[0], cfg)
     if cfg.check_window:
         stride = cfg.check_plane_stride
-        inv_check, _, _ = winner_take_all(scores[1][::stride], inv_depths[::stride], query_stats[1][2], cfg)
+        inv_check, _, _ = winner_take_all(scores[1][::stride], inv_depths[::stride], query_var[1], cfg)
         agree = np.abs(inv_depth - inv_check) * np.median(sparse_depths) <= cfg.window_agreement
         conf_small = np.where(agree, np.minimum(conf_small * cfg.confidence_gain, 1.0), 0.0).astype(
             np.float32
@@ -223,6 +202,119 @@ def plane_sweep(
     depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
     conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
     return depth, np.clip(conf, 0.0, 1.0)
+
+
+def sweep_planes(sparse_depths: NDArray[np.float64], cfg: SweepConfig) -> NDArray[np.float64]:
+    """The swept inverse depths, near to far: ``cfg.planes`` over the widened sparse-depth range,
+    preceded by coarser planes down to ``near_depth_factor`` x the median sparse depth."""
+    lo, hi = np.percentile(sparse_depths, cfg.depth_range_percentiles)
+    d_min, d_max = lo * cfg.depth_range_margin[0], hi * cfg.depth_range_margin[1]
+    inv_depths = np.linspace(1.0 / d_min, 1.0 / d_max, cfg.planes)
+    near = cfg.near_depth_factor * float(np.median(sparse_depths))
+    if 0 < near < d_min:
+        # Surfaces nearer than the sparse points (a wall beside the robot) get coarser planes: the
+        # depth error of one inverse-depth step shrinks with the square of the depth.
+        coarse = cfg.near_plane_step * (inv_depths[0] - inv_depths[1])
+        inv_depths = np.concatenate(
+            [np.arange(1.0 / near, inv_depths[0] + 0.5 * coarse, -coarse)[:-1], inv_depths]
+        )
+    return inv_depths
+
+
+def _chunks(n: int, parts: int) -> list[range]:
+    """``range(n)`` split into at most ``parts`` contiguous, nearly equal ranges."""
+    bounds = np.linspace(0, n, min(parts, n) + 1).round().astype(int)
+    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+class _RefStack:
+    """Windowed NCC of warped references against the query, all references in one tall image.
+
+    Each reference occupies ``h`` rows padded by ``g`` mirrored rows above and below (OpenCV's
+    default border, BORDER_REFLECT_101), so that one box filter serves every reference and no
+    window reaches into the next one: the NCC equals the per-image one.
+    """
+
+    def __init__(self, q: NDArray[np.float32], n_refs: int, windows: list[int]) -> None:
+        self.h, self.w = q.shape
+        self.n_refs, self.windows = n_refs, windows
+        self.g = max(windows) // 2
+        self.rows = self.h + 2 * self.g
+        self.stacked_q = self.stack([q] * n_refs)
+        self.query_stats = []  # per window: stacked (mean, variance), single variance
+        self.stacked_stats = []
+        for size in windows:
+            mu = cv2.boxFilter(q, -1, (size, size))
+            var = np.maximum(cv2.boxFilter(q * q, -1, (size, size)) - mu * mu, 0.0)
+            self.query_stats.append((mu, var))
+            self.stacked_stats.append((self.stack([mu] * n_refs), self.stack([var] * n_refs)))
+        self.kernels = [np.ones((size, size), np.uint8) for size in windows]
+
+    def stack(self, images: list[NDArray[np.float32]]) -> NDArray[np.float32]:
+        g = self.g
+        return np.concatenate([cv2.copyMakeBorder(i, g, g, 0, 0, cv2.BORDER_REFLECT_101) for i in images])
+
+    def buffers(self) -> dict[str, NDArray[np.float32]]:
+        """Work arrays of one thread."""
+        shape = (self.n_refs * self.rows, self.w)
+        return {
+            name: np.empty(shape, np.float32) for name in ("warped", "square", "cross", "a", "b", "c", "d")
+        }
+
+    def score(
+        self,
+        refs: list[NDArray[np.float32]],
+        homographies: NDArray[np.float64],
+        windows: list[int],
+        keep: int,
+        buf: dict[str, NDArray[np.float32]],
+        scores: NDArray[np.float32],
+        plane: int,
+    ) -> None:
+        """``scores[k, plane]`` = mean NCC of the ``keep`` best references for each window index k."""
+        h, w, g, rows = self.h, self.w, self.g, self.rows
+        warped = buf["warped"]
+        for r, (ref, H) in enumerate(zip(refs, homographies, strict=True)):
+            top = r * rows + g
+            cv2.warpPerspective(
+                ref,
+                H,
+                (w, h),
+                dst=warped[top : top + h],
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float("nan"),
+            )
+            warped[top - g : top] = warped[top + g : top : -1]
+            warped[top + h : top + h + g] = warped[top + h - 2 : top + h - 2 - g : -1]
+        # Box filters keep running sums along rows, so one NaN would blank the rest of its row (a
+        # reference leaving the view on the left hid the whole image): zero the unseen pixels and
+        # mark windows that reach them instead.
+        unseen = np.isnan(warped)
+        warped[unseen] = 0.0
+        seen = (~unseen).view(np.uint8)
+        square, cross, a, b, c, d = (buf[name] for name in ("square", "cross", "a", "b", "c", "d"))
+        np.multiply(warped, warped, out=square)
+        np.multiply(self.stacked_q, warped, out=cross)
+        for k in windows:
+            size = self.windows[k]
+            mu_q, var_q = self.stacked_stats[k]
+            cv2.boxFilter(warped, -1, (size, size), dst=a)  # mean of the warped reference
+            cv2.boxFilter(square, -1, (size, size), dst=b)
+            cv2.boxFilter(cross, -1, (size, size), dst=c)
+            # ncc = (E[qw] - mu_q mu_w) / sqrt(var_q * max(E[w^2] - mu_w^2, 0) + 1e-3)
+            np.subtract(c, np.multiply(mu_q, a, out=d), out=c)
+            np.multiply(a, a, out=a)
+            np.subtract(b, a, out=b)
+            np.maximum(b, 0.0, out=b)
+            np.multiply(b, var_q, out=b)
+            b += 1e-3
+            np.sqrt(b, out=b)
+            np.divide(c, b, out=c)
+            visible = cv2.erode(seen, self.kernels[k], borderValue=1)
+            c[visible == 0] = -np.inf
+            per_ref = c.reshape(self.n_refs, rows, w)[:, g : g + h]
+            scores[k, plane] = top_mean(per_ref, keep)
 
 
 def winner_take_all(
