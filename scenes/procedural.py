@@ -13,8 +13,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 
 from vgpnav_env.scenes.freespace import blocks, connectivity_report, footprint
 from vgpnav_env.scenes.primitives import PRIMITIVES
@@ -23,6 +27,8 @@ from vgpnav_env.scenes.spec import DoorSpec, LayoutEdit, ObjectSpec, RoomSpec, S
 #: Clearance (m) of the free-space check when accepting placements (passages >= 0.5 m + discretisation).
 PLACEMENT_CLEARANCE = 0.25
 MAX_LOST = 0.08  # largest fraction of navigable cells allowed outside the main component
+#: Furniture, materials and movable kinds per style (package data beside the built-in scenes).
+CATALOGUE_FILE = Path(__file__).parent / "builtin" / "catalogue.yaml"
 
 
 @dataclass(frozen=True)
@@ -38,236 +44,55 @@ class Item:
     roles: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
 
-def _it(kind: str, cat: str, w, d, h, mats=(), place="wall", count=(1, 1), roles=()) -> Item:  # noqa: ANN001
-    return Item(kind, cat, (w, d, h), tuple(mats), place, count, tuple(roles))
+def _choices(values: list[str]) -> tuple[str, ...]:
+    return tuple(str(v) for v in values)
 
 
-_WOOD = ("wood:oak", "wood:walnut", "wood:pine", "wood:white", "wood:cherry")
-_FABRIC = (
-    "fabric:grey",
-    "fabric:blue",
-    "fabric:green",
-    "fabric:beige",
-    "fabric:teal",
-    "fabric:red",
-    "fabric:brown",
-)
+def _item(entry: dict[str, Any]) -> Item:
+    return Item(
+        kind=entry["kind"],
+        category=entry["category"],
+        size=tuple((float(lo), float(hi)) for lo, hi in entry["size"]),  # type: ignore[arg-type]
+        materials=_choices(entry.get("materials", [])),
+        place=entry.get("place", "wall"),
+        count=tuple(int(n) for n in entry.get("count", (1, 1))),  # type: ignore[arg-type]
+        roles=tuple((role, _choices(choices)) for role, choices in entry.get("roles", {}).items()),
+    )
 
-CATALOGUE: dict[str, dict[str, list[Item]]] = {
-    "home": {
-        "living": [
-            _it("sofa", "sofa", (1.8, 2.4), (0.85, 0.95), (0.8, 0.9), _FABRIC),
-            _it("tv", "tv", (1.2, 1.8), (0.4, 0.5), (1.1, 1.3)),
-            _it("shelf", "shelf", (0.8, 1.2), (0.3, 0.4), (1.6, 2.0), _WOOD, count=(1, 2)),
-            _it("armchair", "sofa", (0.8, 0.95), (0.8, 0.9), (0.8, 0.9), _FABRIC, count=(0, 2)),
-            _it("cabinet", "cabinet", (1.0, 1.8), (0.4, 0.5), (0.7, 0.9), _WOOD),
-            _it("plant", "plant", (0.4, 0.6), (0.4, 0.6), (0.8, 1.5), count=(1, 2)),
-            _it("table", "table", (0.8, 1.2), (0.5, 0.7), (0.4, 0.5), _WOOD, place="free"),
-            _it(
-                "rug",
-                "rug",
-                (1.6, 2.6),
-                (1.2, 1.8),
-                (0.01, 0.01),
-                ("carpet:red", "carpet:blue", "carpet:beige"),
-                "free",
-            ),
-        ],
-        "kitchen": [
-            _it(
-                "counter",
-                "counter",
-                (2.0, 3.2),
-                (0.6, 0.65),
-                (0.9, 0.95),
-                ("wood:white", "wood:oak", "wood:grey"),
-                roles=(("top", ("marble:dark", "marble:white", "wood:oak")),),
-            ),
-            _it("fridge", "fridge", (0.6, 0.75), (0.65, 0.72), (1.75, 1.95), ("metal:white", "metal:steel")),
-            _it("cabinet", "cabinet", (0.8, 1.4), (0.45, 0.6), (0.85, 2.0), ("wood:white", "wood:oak")),
-            _it("table", "table", (0.9, 1.3), (0.7, 0.9), (0.72, 0.76), _WOOD, place="free"),
-            _it("chair", "chair", (0.42, 0.48), (0.45, 0.52), (0.85, 0.95), _WOOD, "table", (2, 4)),
-            _it("plant", "plant", (0.35, 0.5), (0.35, 0.5), (0.6, 1.1), count=(0, 1)),
-        ],
-        "bedroom": [
-            _it(
-                "bed",
-                "bed",
-                (1.2, 1.8),
-                (1.95, 2.1),
-                (0.9, 1.1),
-                ("fabric:white", "fabric:beige", "fabric:lightblue"),
-                roles=(("frame", _WOOD), ("pillow", ("fabric:white", "fabric:pink", "fabric:blue"))),
-            ),
-            _it("wardrobe", "wardrobe", (1.0, 1.8), (0.55, 0.65), (1.9, 2.2), _WOOD),
-            _it("cabinet", "cabinet", (0.4, 0.5), (0.35, 0.45), (0.5, 0.6), _WOOD, count=(1, 2)),
-            _it("desk", "table", (1.0, 1.4), (0.55, 0.7), (0.72, 0.76), _WOOD, count=(0, 1)),
-            _it("chair", "chair", (0.42, 0.48), (0.45, 0.52), (0.85, 0.95), _FABRIC, "table", (0, 1)),
-            _it("shelf", "shelf", (0.6, 1.0), (0.3, 0.35), (1.2, 1.9), _WOOD, count=(0, 1)),
-            _it(
-                "rug",
-                "rug",
-                (1.2, 2.0),
-                (0.8, 1.4),
-                (0.01, 0.01),
-                ("carpet:grey", "carpet:beige"),
-                "free",
-                (0, 1),
-            ),
-        ],
-        "bath": [
-            _it("bathtub", "bathtub", (1.6, 1.75), (0.7, 0.8), (0.5, 0.6)),
-            _it("toilet", "toilet", (0.38, 0.42), (0.6, 0.7), (0.75, 0.85)),
-            _it("sink", "sink", (0.6, 1.0), (0.45, 0.55), (0.85, 0.9), ("wood:white", "wood:oak")),
-            _it("cabinet", "cabinet", (0.4, 0.6), (0.3, 0.4), (1.2, 1.8), ("wood:white",), count=(0, 1)),
-        ],
-        "corridor": [
-            _it("cabinet", "cabinet", (0.8, 1.2), (0.3, 0.4), (0.8, 1.0), _WOOD, count=(0, 1)),
-            _it("plant", "plant", (0.4, 0.5), (0.4, 0.5), (0.8, 1.2), count=(0, 1)),
-        ],
-    },
-    "hospital": {
-        "ward": [
-            _it(
-                "hospital_bed",
-                "bed",
-                (0.95, 1.05),
-                (2.05, 2.15),
-                (0.95, 1.05),
-                ("fabric:lightblue", "fabric:white", "fabric:green"),
-                count=(2, 3),
-            ),
-            _it(
-                "cabinet",
-                "cabinet",
-                (0.45, 0.55),
-                (0.4, 0.5),
-                (0.75, 0.85),
-                ("plastic:white",),
-                count=(1, 3),
-                roles=(("doors", ("plastic:white", "plastic:blue")),),
-            ),
-            _it(
-                "screen",
-                "screen",
-                (1.2, 1.6),
-                (0.4, 0.4),
-                (1.7, 1.9),
-                ("fabric:lightblue", "fabric:pink", "fabric:mustard"),
-                place="free",
-                count=(0, 1),
-            ),
-            _it(
-                "chair",
-                "chair",
-                (0.42, 0.48),
-                (0.45, 0.52),
-                (0.85, 0.95),
-                ("plastic:green", "plastic:blue"),
-                count=(1, 2),
-                roles=(("legs", ("metal:steel",)),),
-            ),
-        ],
-        "reception": [
-            _it(
-                "counter",
-                "counter",
-                (2.0, 2.8),
-                (0.65, 0.75),
-                (1.0, 1.1),
-                ("wood:oak", "plastic:white"),
-                place="free",
-                roles=(("top", ("wood:white", "wood:oak", "marble:white")),),
-            ),
-            _it(
-                "chair",
-                "chair",
-                (0.45, 0.5),
-                (0.48, 0.52),
-                (0.85, 0.9),
-                ("plastic:blue", "plastic:grey"),
-                count=(3, 6),
-                roles=(("legs", ("metal:steel",)),),
-            ),
-            _it("shelf", "shelf", (1.0, 1.4), (0.35, 0.4), (1.6, 1.9), _WOOD),
-            _it("plant", "plant", (0.5, 0.6), (0.5, 0.6), (1.2, 1.6), count=(1, 2)),
-        ],
-        "office": [
-            _it("desk", "table", (1.2, 1.6), (0.6, 0.8), (0.72, 0.76), ("wood:white", "wood:oak")),
-            _it(
-                "chair",
-                "chair",
-                (0.45, 0.5),
-                (0.48, 0.52),
-                (0.85, 1.0),
-                ("fabric:grey", "fabric:navy"),
-                "table",
-            ),
-            _it("shelf", "shelf", (0.8, 1.2), (0.3, 0.4), (1.8, 2.0), _WOOD, count=(1, 3)),
-            _it(
-                "cabinet",
-                "cabinet",
-                (0.8, 1.2),
-                (0.45, 0.55),
-                (1.0, 1.9),
-                ("metal:white", "metal:steel"),
-                count=(0, 2),
-            ),
-        ],
-        "corridor": [
-            _it(
-                "bench",
-                "bench",
-                (1.4, 1.8),
-                (0.42, 0.48),
-                (0.43, 0.47),
-                ("wood:pine", "wood:oak"),
-                count=(1, 3),
-            ),
-            _it("plant", "plant", (0.45, 0.6), (0.45, 0.6), (1.0, 1.4), count=(1, 2)),
-            _it("cabinet", "cart", (0.7, 0.9), (0.45, 0.55), (0.9, 1.1), ("metal:steel",), count=(0, 1)),
-        ],
-    },
-}
 
-_FLOORS = {
-    "home": {
-        "living": ("parquet:oak", "parquet:walnut", "parquet:pine", "carpet:grey"),
-        "kitchen": ("tiles:beige", "tiles:white", "tiles:terracotta", "tiles:grey"),
-        "bedroom": ("parquet:pine", "carpet:beige", "carpet:blue", "parquet:grey"),
-        "bath": ("tiles:grey", "tiles:blue", "tiles:white", "tiles:green"),
-        "corridor": ("parquet:oak", "parquet:walnut", "tiles:grey"),
-    },
-    "hospital": {
-        "ward": ("linoleum:beige", "linoleum:blue", "linoleum:green"),
-        "reception": ("tiles:grey", "tiles:beige", "linoleum:grey"),
-        "office": ("carpet:grey", "linoleum:grey", "carpet:blue"),
-        "corridor": ("linoleum:green", "linoleum:grey", "linoleum:blue"),
-    },
-}
-_PAINTS = {
-    "home": (
-        "paint:white",
-        "paint:cream",
-        "paint:beige",
-        "paint:sage",
-        "paint:blue",
-        "paint:yellow",
-        "paint:pink",
-    ),
-    "hospital": ("paint:white", "paint:cream", "paint:mint", "paint:blue", "paint:grey"),
-}
-_PERSON_TOPS = (
-    "fabric:red",
-    "fabric:blue",
-    "fabric:green",
-    "fabric:white",
-    "fabric:mustard",
-    "fabric:teal",
-    "fabric:pink",
-)
-_PERSON_LEGS = ("fabric:navy", "fabric:grey", "fabric:brown", "fabric:beige")
-_SKINS = ("skin:light", "skin:medium", "skin:dark")
+@dataclass(frozen=True)
+class Catalogue:
+    """What procedural scenes are made of (``builtin/catalogue.yaml``): ``furniture[style][room
+    kind]``, ``floors[style][room kind]`` and ``paints[style]`` material choices, what people wear
+    and the object kinds the changed layouts may move."""
+
+    furniture: dict[str, dict[str, tuple[Item, ...]]]
+    floors: dict[str, dict[str, tuple[str, ...]]]
+    paints: dict[str, tuple[str, ...]]
+    tops: tuple[str, ...]
+    trousers: tuple[str, ...]
+    skins: tuple[str, ...]
+    movable: frozenset[str]
+
+
+@lru_cache(maxsize=1)
+def load_catalogue(path: Path = CATALOGUE_FILE) -> Catalogue:
+    """The catalogue YAML as typed data (cached; treat it as read-only)."""
+    data = yaml.safe_load(Path(path).read_text())
+    return Catalogue(
+        furniture={
+            style: {room: tuple(_item(e) for e in items) for room, items in rooms.items()}
+            for style, rooms in data["furniture"].items()
+        },
+        floors={
+            style: {room: _choices(c) for room, c in rooms.items()} for style, rooms in data["floors"].items()
+        },
+        paints={style: _choices(c) for style, c in data["paints"].items()},
+        tops=_choices(data["people"]["tops"]),
+        trousers=_choices(data["people"]["trousers"]),
+        skins=_choices(data["people"]["skins"]),
+        movable=frozenset(data["movable"]),
+    )
 
 
 @dataclass
@@ -363,7 +188,7 @@ def _walls_and_doors(
     ext, inner = 0.12 if style == "home" else 0.15, 0.1
     height = 2.6 if style == "home" else 2.7
     door_h = 2.1
-    paints = _PAINTS[style]
+    paints = load_catalogue().paints[style]
 
     def paint() -> str:
         return paints[int(rng.integers(len(paints)))]
@@ -586,7 +411,7 @@ def _furnish(rng: np.random.Generator, style: str, stub: SceneSpec, rooms: list[
     placer = _Placer(stub, rooms, rng)
     decorations: list[ObjectSpec] = []
     for r in rooms:
-        for item in CATALOGUE[style][r.kind]:
+        for item in load_catalogue().furniture[style][r.kind]:
             for i in range(int(rng.integers(item.count[0], item.count[1] + 1))):
                 o = _sample_object(rng, item, f"{item.kind}_{r.name}_{i}")
                 placer.place(o, r, item.place)
@@ -613,10 +438,11 @@ def _furnish(rng: np.random.Generator, style: str, stub: SceneSpec, rooms: list[
 
 def _person(rng: np.random.Generator, name: str) -> ObjectSpec:
     h = _u(rng, 1.6, 1.85)
+    wear = load_catalogue()
     mats = (
-        ("main", _PERSON_TOPS[int(rng.integers(len(_PERSON_TOPS)))]),
-        ("skin", _SKINS[int(rng.integers(len(_SKINS)))]),
-        ("trousers", _PERSON_LEGS[int(rng.integers(len(_PERSON_LEGS)))]),
+        ("main", wear.tops[int(rng.integers(len(wear.tops)))]),
+        ("skin", wear.skins[int(rng.integers(len(wear.skins)))]),
+        ("trousers", wear.trousers[int(rng.integers(len(wear.trousers)))]),
     )
     return ObjectSpec(
         name, "person", "person", 0, 0, size=(round(0.5 * h / 1.7, 3), 0.35, round(h, 3)), materials=mats
@@ -627,25 +453,7 @@ def _edit(
     rng: np.random.Generator, stub: SceneSpec, rooms: list[_Room], base: list[ObjectSpec], tag: str
 ) -> LayoutEdit:
     """Move 3-5 movable objects, remove 2-3, add 2-4 people and 1-2 boxes, keeping space connected."""
-    movable = [
-        o
-        for o in base
-        if o.kind
-        in (
-            "chair",
-            "table",
-            "armchair",
-            "plant",
-            "screen",
-            "bench",
-            "cabinet",
-            "hospital_bed",
-            "desk",
-            "sofa",
-            "bed",
-        )
-        and blocks(o)
-    ]
+    movable = [o for o in base if o.kind in load_catalogue().movable and blocks(o)]
     order = list(rng.permutation(len(movable)))
     removed = [movable[i].name for i in order[: int(rng.integers(2, 4))]]
     current = [o for o in base if o.name not in removed]
@@ -689,12 +497,13 @@ def _edit(
 
 def generate(style: str, seed: int) -> SceneSpec:
     """A new scene of ``style`` ('home' or 'hospital') from ``seed``, with base, changed and changed2."""
-    if style not in CATALOGUE:
-        raise SceneError(f"unknown procedural style {style!r}; allowed: {sorted(CATALOGUE)}")
+    catalogue = load_catalogue()
+    if style not in catalogue.furniture:
+        raise SceneError(f"unknown procedural style {style!r}; allowed: {sorted(catalogue.furniture)}")
     rng = np.random.default_rng([seed, 0 if style == "home" else 1])
     W, H, rooms, ys, yc = (_plan_home if style == "home" else _plan_hospital)(rng)
     walls = _walls_and_doors(rng, style, W, H, rooms, ys, yc)
-    floors = _FLOORS[style]
+    floors = catalogue.floors[style]
     room_specs = tuple(
         RoomSpec(
             r.name,

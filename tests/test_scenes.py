@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -23,7 +26,9 @@ from vgpnav_env.scenes import (
     scene_slug,
 )
 from vgpnav_env.scenes.freespace import connectivity_report
-from vgpnav_env.scenes.procedural import generate
+from vgpnav_env.scenes.materials import parse_material_name
+from vgpnav_env.scenes.primitives import PRIMITIVES
+from vgpnav_env.scenes.procedural import generate, load_catalogue
 from vgpnav_env.scenes.spec import load_spec
 
 MINIMAL = {
@@ -233,10 +238,34 @@ def test_same_arguments_same_scene_and_cache(home) -> None:
         np.testing.assert_array_equal(a.material.image, b.material.image)
 
 
+#: Digests of ``generate(style, 3)``, measured when the catalogue moved from Python literals to
+#: ``builtin/catalogue.yaml`` (seeds 0-5 of both styles gave identical specs before and after).
+PROCEDURAL_DIGESTS = {"home": "4eb57ae89f93f6bf", "hospital": "6405836c2596e7be"}
+
+
+def test_procedural_catalogue_is_valid_package_data() -> None:
+    catalogue = load_catalogue()
+    assert set(catalogue.furniture) == set(catalogue.floors) == set(catalogue.paints) == {"home", "hospital"}
+    materials = [m for style in catalogue.paints.values() for m in style]
+    materials += [m for rooms in catalogue.floors.values() for room in rooms.values() for m in room]
+    materials += [*catalogue.tops, *catalogue.trousers, *catalogue.skins]
+    for style, rooms in catalogue.furniture.items():
+        assert set(rooms) == set(catalogue.floors[style])  # every room kind has furniture and floors
+        for item in (item for items in rooms.values() for item in items):
+            assert item.kind in PRIMITIVES and item.place in ("wall", "free", "table")
+            assert all(lo <= hi for lo, hi in item.size) and 0 <= item.count[0] <= item.count[1]
+            materials += [*item.materials, *(m for _, choices in item.roles for m in choices)]
+    for name in materials:
+        parse_material_name(name)  # raises on an unknown material
+    assert catalogue.movable <= set(PRIMITIVES)
+
+
 @pytest.mark.parametrize(("style", "lo", "hi"), [("home", 80, 120), ("hospital", 150, 250)])
 def test_procedural_scenes(style: str, lo: float, hi: float) -> None:
     a, b, c = generate(style, 3), generate(style, 3), generate(style, 4)
     assert a == b
+    digest = hashlib.sha256(json.dumps(asdict(a), sort_keys=True, default=repr).encode()).hexdigest()
+    assert digest[:16] == PROCEDURAL_DIGESTS[style]
     assert a.objects != c.objects and a.rooms != c.rooms
     for spec in (a, c):
         assert lo <= spec.floor_area <= hi
