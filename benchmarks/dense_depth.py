@@ -34,7 +34,8 @@ from vgpnav_env.build import build_runs, default_build_dir
 from vgpnav_env.eval.perception_runs import accuracy_completeness
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.database import DatabaseConfig, open_database
-from vgpnav_env.perception.pipeline import OccupancyConfig, Perceiver, PerceptionConfig
+from vgpnav_env.perception.occupancy import OccupancyConfig
+from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig
 from vgpnav_env.runs import load_build, load_run_depth
 
 

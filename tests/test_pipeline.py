@@ -14,6 +14,7 @@ from tiny_build import QUERY_HEIGHT, make_tiny_build
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
+from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, PoseGate, perceive
 from vgpnav_env.perception.retrieval import VladConfig, select_references
 from vgpnav_env.runs import load_run, load_run_depth
@@ -61,6 +62,12 @@ def test_database_cache_and_prior(database: Database, build: Path) -> None:
     assert again.timings["index"] < database.timings["index"] or database.timings["index"] < 0.5
     np.testing.assert_array_equal(again.index.database, database.index.database)
     np.testing.assert_array_equal(again.prior.logodds, database.prior.logodds)
+    # A perceiver's map starts from the prior and fuses with its config's log-odds settings.
+    occupancy = OccupancyConfig(l_free=-0.2, l_occ=2.0, clamp=(-1.5, 1.5))
+    perceiver = Perceiver(database, "simulated", config=PerceptionConfig(occupancy=occupancy))
+    m = perceiver.map
+    assert (m.l_free, m.l_occ, m.clamp) == (-0.2, 2.0, (-1.5, 1.5))
+    np.testing.assert_array_equal(m.logodds, np.clip(database.prior.logodds, -1.5, 1.5))
 
 
 def test_index_invalidated_when_run_changes(build: Path, tmp_path: Path) -> None:

@@ -12,6 +12,7 @@ from vgpnav_env.perception.retrieval import (
     VladConfig,
     VladIndex,
     geometric_median,
+    nearby_cameras,
     pose_guided_references,
     select_references,
 )
@@ -197,3 +198,10 @@ def test_pose_guided_references_rank_nearby_cameras_looking_the_same_way() -> No
     assert pose_guided_references(poses, np.stack([first, first]), 10).tolist() == [0, 1, 4]
     with pytest.raises(ValueError, match="radius"):
         pose_guided_references(poses, first[None], 3, radius=0.0)
+    # The shared test: centre distance in [min, max] metres, optical axes within the angle.
+    near = nearby_cameras(poses, first, 1.5, 35.0)
+    assert near.index.tolist() == [0, 1, 4]
+    np.testing.assert_allclose(near.distance, [0.0, 1.0, 0.2])
+    np.testing.assert_allclose(near.cos_angle, [1.0, 1.0, np.cos(np.deg2rad(20.0))])
+    assert nearby_cameras(poses, first, 1.5, 35.0, min_distance=0.5).index.tolist() == [1]
+    assert nearby_cameras(poses, first, 1.5, 19.0).index.tolist() == [0, 1]

@@ -44,8 +44,9 @@ from vgpnav_env.perception.backbones.classical import (
     FeatureCache,
     Features,
 )
-from vgpnav_env.perception.occupancy import LogOddsMap
-from vgpnav_env.perception.retrieval import VladConfig, VladIndex
+from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
+from vgpnav_env.perception.points import depth_points
+from vgpnav_env.perception.retrieval import VladConfig, VladIndex, nearby_cameras
 from vgpnav_env.perception.scale_recovery import ground_peak
 from vgpnav_env.robot import CAMERA_HEIGHT
 from vgpnav_env.runs import Run, RunFormatError, load_run, run_fingerprint
@@ -299,9 +300,13 @@ class Database:
             )
         return store
 
-    def new_map(self) -> LogOddsMap:
-        """A fresh log-odds map over :attr:`map_spec`: a copy of the prior, or empty."""
-        return self.prior.copy() if self.prior is not None else LogOddsMap(self.map_spec)
+    def new_map(self, config: OccupancyConfig | None = None) -> LogOddsMap:
+        """A fresh log-odds map over :attr:`map_spec` fusing with ``config``'s ``l_free``, ``l_occ``
+        and ``clamp``: starting from the prior's log-odds, or empty."""
+        c = config or OccupancyConfig()
+        if self.prior is None:
+            return LogOddsMap(self.map_spec, c.l_free, c.l_occ, c.clamp)
+        return LogOddsMap.from_prior(self.map_spec, self.prior.logodds, c.l_free, c.l_occ, c.clamp)
 
     @classmethod
     def open(
@@ -428,21 +433,18 @@ def open_database(
 def prior_neighbours(poses: NDArray[np.float64], j: int, config: DatabaseConfig) -> NDArray[np.int64]:
     """Up to ``prior_neighbours`` database frames overlapping frame ``j``, widest baseline first.
 
-    Candidates lie ``prior_baseline`` metres away with optical axes within ``prior_max_angle_deg``;
-    they are picked greedily to spread the baselines (farthest from the already picked ones).
+    Candidates are the :func:`nearby_cameras` ``prior_baseline`` metres away with optical axes
+    within ``prior_max_angle_deg``; they are picked greedily to spread the baselines (farthest
+    from the already picked ones).
     """
-    c = poses[:, :3, 3]
-    axis = poses[:, :3, 2]
-    d = np.linalg.norm(c - c[j], axis=1)
-    cos = np.clip(axis @ axis[j], -1.0, 1.0)
-    ok = (d >= config.prior_baseline[0]) & (d <= config.prior_baseline[1])
-    ok &= cos >= np.cos(np.deg2rad(config.prior_max_angle_deg))
-    cand = np.flatnonzero(ok)
-    if len(cand) == 0:
-        return cand.astype(np.int64)
+    lo, hi = config.prior_baseline
+    near = nearby_cameras(poses, poses[j], hi, config.prior_max_angle_deg, min_distance=lo)
+    if len(near.index) == 0:
+        return near.index
     # Score overlap: close in angle and moderate in distance; then greedy spread.
-    score = cos[cand] - 0.2 * d[cand]
-    cand = cand[np.argsort(-score)][: 4 * config.prior_neighbours]
+    c = poses[:, :3, 3]
+    score = near.cos_angle - 0.2 * near.distance
+    cand = near.index[np.argsort(-score)][: 4 * config.prior_neighbours]
     picked = [int(cand[0])]
     while len(picked) < min(config.prior_neighbours, len(cand)):
         gap = np.min(np.linalg.norm(c[cand][:, None] - c[picked][None], axis=2), axis=1)
@@ -475,14 +477,17 @@ def build_prior(db: Database, backbone: ClassicalBackbone) -> tuple[LogOddsMap, 
         if not good.any():
             continue
         scale = float(np.median(metric[good] / units[good]))
-        s = cfg.prior_point_stride
-        depth = out.query_depth[::s, ::s] * scale
-        conf = out.query_depth_confidence[::s, ::s]
-        mask = (conf >= cfg.prior_min_confidence) & (depth > 0) & (depth <= cfg.prior_max_depth)
-        if mask.sum() < 50:
+        pts, conf = depth_points(
+            camera,
+            out.query_depth * scale,
+            out.query_depth_confidence,
+            stride=cfg.prior_point_stride,
+            min_confidence=cfg.prior_min_confidence,
+            max_depth=cfg.prior_max_depth,
+        )
+        if len(pts) < 50:
             continue
-        pts = (camera.rays()[::s, ::s] * depth[..., None])[mask]
-        g = ground_peak(pts, db.poses[j][:3, :3], conf[mask])
+        g = ground_peak(pts, db.poses[j][:3, :3], conf)
         if g.found:
             ground_z.append(float(db.poses[j][2, 3] + g.height_b))
         frames.append((j, pts))

@@ -29,6 +29,35 @@ class PointClasses:
     obstacle: NDArray[np.bool_]
 
 
+@dataclass(frozen=True)
+class OccupancyConfig:
+    """Height classes (metres above the anchored ground), the points used and the log-odds fusion.
+
+    Obstacles lie between ``obstacle_min`` and the camera height (paper); ground points within
+    ``free_tol``. Only pixels with depth confidence >= ``min_confidence`` and metric depth <=
+    ``max_depth`` are used, every ``point_stride``-th pixel in both directions. A
+    :class:`LogOddsMap` adds ``l_occ`` / ``l_free`` per frame and clamps to ``clamp`` (the
+    defaults of every map; the perceiver's maps take them from its config).
+    """
+
+    free_tol: float = FLOOR_TOLERANCE
+    obstacle_min: float = OBSTACLE_MIN
+    min_confidence: float = 0.3
+    max_depth: float = 5.0
+    point_stride: int = 2
+    l_free: float = -0.4
+    l_occ: float = 0.85
+    clamp: tuple[float, float] = (-4.0, 4.0)
+
+    def __post_init__(self) -> None:
+        if self.point_stride < 1:
+            raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
+        if self.free_tol <= 0 or self.obstacle_min <= 0 or self.max_depth <= 0:
+            raise ValueError("free_tol, obstacle_min and max_depth must be positive metres")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+
+
 def classify_points(
     points_w: ArrayLike,
     z_ground: float,
@@ -94,9 +123,9 @@ class LogOddsMap:
     def __init__(
         self,
         spec: GridSpec,
-        l_free: float = -0.4,
-        l_occ: float = 0.85,
-        clamp: tuple[float, float] = (-4.0, 4.0),
+        l_free: float = OccupancyConfig.l_free,
+        l_occ: float = OccupancyConfig.l_occ,
+        clamp: tuple[float, float] = OccupancyConfig.clamp,
     ) -> None:
         if l_free >= 0 or l_occ <= 0:
             raise ValueError(f"need l_free < 0 < l_occ, got l_free={l_free}, l_occ={l_occ}")
@@ -113,9 +142,9 @@ class LogOddsMap:
         cls,
         spec: GridSpec,
         prior_logodds: ArrayLike,
-        l_free: float = -0.4,
-        l_occ: float = 0.85,
-        clamp: tuple[float, float] = (-4.0, 4.0),
+        l_free: float = OccupancyConfig.l_free,
+        l_occ: float = OccupancyConfig.l_occ,
+        clamp: tuple[float, float] = OccupancyConfig.clamp,
     ) -> LogOddsMap:
         """A map starting from a prior log-odds grid of shape ``spec.shape`` (clamped)."""
         prior = np.asarray(prior_logodds, np.float32)

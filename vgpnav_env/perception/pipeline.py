@@ -35,7 +35,8 @@ from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.database import Database
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
-from vgpnav_env.perception.occupancy import PointClasses
+from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
+from vgpnav_env.perception.points import depth_points
 from vgpnav_env.perception.retrieval import RetrievalConfig, pose_guided_references, select_references
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
@@ -46,7 +47,7 @@ from vgpnav_env.perception.scale_recovery import (
     reconstruction_points,
     recover_metric_points,
 )
-from vgpnav_env.robot import CAMERA_HEIGHT, FLOOR_TOLERANCE, OBSTACLE_MIN
+from vgpnav_env.robot import CAMERA_HEIGHT
 
 logger = logging.getLogger(__name__)
 
@@ -55,33 +56,6 @@ logger = logging.getLogger(__name__)
 #: lies outside the caller's :class:`PoseGate` (e.g. odometry since the last fix).
 LOST_REASONS = ("too few matches", "no consensus", "no ground", "inconsistent motion")
 TIMING_KEYS = ("retrieval", "backbone", "motion_averaging", "scale_recovery", "occupancy", "total")
-
-
-@dataclass(frozen=True)
-class OccupancyConfig:
-    """Height classes (metres above the anchored ground) and log-odds fusion settings.
-
-    Obstacles lie between ``obstacle_min`` and the camera height (paper); ground points within
-    ``free_tol``. Only pixels with depth confidence >= ``min_confidence`` and metric depth <=
-    ``max_depth`` are used, every ``point_stride``-th pixel in both directions.
-    """
-
-    free_tol: float = FLOOR_TOLERANCE
-    obstacle_min: float = OBSTACLE_MIN
-    min_confidence: float = 0.3
-    max_depth: float = 5.0
-    point_stride: int = 2
-    l_free: float = -0.4
-    l_occ: float = 0.85
-    clamp: tuple[float, float] = (-4.0, 4.0)
-
-    def __post_init__(self) -> None:
-        if self.point_stride < 1:
-            raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
-        if self.free_tol <= 0 or self.obstacle_min <= 0 or self.max_depth <= 0:
-            raise ValueError("free_tol, obstacle_min and max_depth must be positive metres")
-        if not 0.0 <= self.min_confidence <= 1.0:
-            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
 
 
 @dataclass(frozen=True)
@@ -271,7 +245,7 @@ class Perceiver:
 
     def reset(self) -> None:
         """Forget the episode: a fresh map from the prior and no ground anchor."""
-        self.map = self.database.new_map()
+        self.map = self.database.new_map(self.config.occupancy)
         self.anchor = GroundAnchor(self.config.scale)
 
     @property
@@ -374,13 +348,19 @@ class Perceiver:
         if not est.ok:
             detail = "no ground peak and no ray-implied scale"
             return lost("no ground", detail, z_ground=z_ground, ground=ground)
-        points_q, _ = self._query_points(out)
+        occ = self.config.occupancy
+        points_q, _ = depth_points(
+            self.camera,
+            out.query_depth,
+            out.query_depth_confidence,
+            stride=occ.point_stride,
+            min_confidence=occ.min_confidence,
+        )
         points_q = points_q[points_q[:, 2] * est.scale <= self.config.occupancy.max_depth]
         points_w = recover_metric_points(points_q, T_wc, est.scale)
         timings["scale_recovery"] += time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        occ = self.config.occupancy
         classes = self.map.update(
             points_w,
             z_ground,
@@ -462,28 +442,18 @@ class Perceiver:
         """Ground peak (backbone units) of the whole reconstruction: confident query pixels plus the
         reference depths a backbone returns (moved into the query frame, weighted by pair confidence
         on the common scale). ``prior_height_b`` restricts the peak to near the expected height."""
-        conf = out.query_depth_confidence
-        conf = np.where(conf >= self.config.occupancy.min_confidence, conf, 0.0)
         weights = out.confidence * out.scale_valid if out.reference_depths is not None else None
         points, w = reconstruction_points(
             self.camera,
             out.query_depth,
-            conf,
+            out.query_depth_confidence,
             out.T_qi,
             out.reference_depths,
             weights,
             stride=self.config.occupancy.point_stride,
+            min_confidence=self.config.occupancy.min_confidence,
         )
         return ground_peak(points, T_wc[:3, :3], w, self.config.scale, prior_height_b=prior_height_b)
-
-    def _query_points(self, out: BackboneOutput) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Confident query points (N, 3) in backbone units (camera frame) and their confidences."""
-        s = self.config.occupancy.point_stride
-        depth = out.query_depth[::s, ::s]
-        conf = out.query_depth_confidence[::s, ::s]
-        mask = np.isfinite(depth) & (depth > 0) & (conf >= self.config.occupancy.min_confidence)
-        pts = self.camera.rays()[::s, ::s] * depth[..., None]
-        return pts[mask], conf[mask].astype(np.float64)
 
     def _localize(self, rgb: NDArray[np.uint8], privileged: Privileged | None) -> PerceptionResult:
         """Stages 1-3 (retrieval, backbone, motion averaging): a lost result or one with motion set.

@@ -18,7 +18,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -423,6 +423,30 @@ def select_references(
     return valid[selected].astype(np.int64)
 
 
+class NearbyCameras(NamedTuple):
+    """Cameras near a pose: ``index`` (ascending), centre ``distance`` (metres) and ``cos_angle``
+    (cosine of the angle between the optical axes), one entry per camera."""
+
+    index: NDArray[np.int64]
+    distance: NDArray[np.float64]
+    cos_angle: NDArray[np.float64]
+
+
+def nearby_cameras(
+    T_w: ArrayLike, T: ArrayLike, max_distance: float, max_angle_deg: float, *, min_distance: float = 0.0
+) -> NearbyCameras:
+    """The cameras ``T_w`` (M, 4, 4) whose centre lies ``min_distance`` to ``max_distance`` metres
+    from the centre of the pose ``T`` (4, 4) and whose optical axis (z) is within ``max_angle_deg``
+    degrees of ``T``'s: the one test of "a camera that sees what ``T`` sees"."""
+    T_w, T = np.asarray(T_w, float), np.asarray(T, float)
+    distance = np.linalg.norm(T_w[:, :3, 3] - T[:3, 3], axis=1)
+    cos_angle = np.clip(T_w[:, :3, 2] @ T[:3, 2], -1.0, 1.0)
+    ok = (distance >= min_distance) & (distance <= max_distance)
+    ok &= np.degrees(np.arccos(cos_angle)) <= max_angle_deg
+    index = np.flatnonzero(ok)
+    return NearbyCameras(index.astype(np.int64), distance[index], cos_angle[index])
+
+
 def pose_guided_references(
     T_w: ArrayLike,
     hypotheses: ArrayLike,
@@ -436,10 +460,10 @@ def pose_guided_references(
 
     ``T_w`` (M, 4, 4) are the database ``T_wi``; ``hypotheses`` (h, 4, 4) are rough query poses
     ``T_wq`` (e.g. a reference's centre with the rotation ``R_wi R_iq`` a backbone pair implies),
-    most trusted first. A database camera qualifies for a hypothesis when its centre lies within
-    ``radius`` metres and its optical axis within ``max_angle_deg`` of the hypothesis'; it is
-    ranked by ``distance / radius + angle / max_angle``. The hypotheses take turns (best-ranked
-    first), indices in ``exclude`` are skipped, each index appears once.
+    most trusted first. A database camera qualifies for a hypothesis when it is one of its
+    :func:`nearby_cameras` (``radius`` metres, ``max_angle_deg``); it is ranked by
+    ``distance / radius + angle / max_angle``. The hypotheses take turns (best-ranked first),
+    indices in ``exclude`` are skipped, each index appears once.
     """
     T = np.asarray(T_w, float)
     H = np.asarray(hypotheses, float).reshape(-1, 4, 4)
@@ -449,14 +473,11 @@ def pose_guided_references(
         raise ValueError(
             f"need n >= 0, radius > 0 and max_angle_deg in (0, 180]; got {n}, {radius}, {max_angle_deg}"
         )
-    axes = T[:, :3, 2]
     ranked = []
     for hyp in H:
-        d = np.linalg.norm(T[:, :3, 3] - hyp[:3, 3], axis=1)
-        ang = np.degrees(np.arccos(np.clip(axes @ hyp[:3, 2], -1.0, 1.0)))
-        ok = np.flatnonzero((d <= radius) & (ang <= max_angle_deg))
-        score = d[ok] / radius + ang[ok] / max_angle_deg
-        ranked.append(list(ok[np.argsort(score, kind="stable")]))
+        near = nearby_cameras(T, hyp, radius, max_angle_deg)
+        score = near.distance / radius + np.degrees(np.arccos(near.cos_angle)) / max_angle_deg
+        ranked.append(list(near.index[np.argsort(score, kind="stable")]))
     chosen: list[int] = []
     taken = {int(i) for i in np.asarray(exclude, np.int64).ravel()}
     while len(chosen) < n and any(ranked):

@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from vgpnav_env.geometry import PinholeCamera, transform_points
+from vgpnav_env.perception.points import depth_points
 
 
 @dataclass(frozen=True)
@@ -211,25 +212,23 @@ def reconstruction_points(
     reference_weights: ArrayLike | None = None,
     stride: int = 2,
     reference_stride: int = 4,
+    min_confidence: float = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Backbone points (N, 3) in the QUERY camera frame and their weights (N,).
 
-    The query's z-depth (H, W) (0 / non-finite = unknown) weighted by ``query_confidence``,
-    plus, when given, each reference's depth (k, H, W) moved into the query frame with
-    ``T_qi`` (k, 4, 4) and weighted by ``reference_weights`` (k,) (e.g. the backbone
-    confidence, 0 for pairs off the common scale). Pixels are subsampled by the strides.
+    The query's z-depth (H, W) (0 / non-finite = unknown) at pixels whose ``query_confidence``
+    is at least ``min_confidence``, weighted by that confidence, plus, when given, each
+    reference's depth (k, H, W) moved into the query frame with ``T_qi`` (k, 4, 4) and weighted
+    by ``reference_weights`` (k,) (e.g. the backbone confidence, 0 for pairs off the common
+    scale). Pixels are subsampled by the strides (:func:`~vgpnav_env.perception.points.depth_points`).
     """
-    rays = camera.rays()
     qd = np.asarray(query_depth, float)
     qc = np.ones_like(qd) if query_confidence is None else np.asarray(query_confidence, float)
-    if qd.shape != rays.shape[:2] or qc.shape != qd.shape:
-        raise ValueError(
-            f"query depth/confidence must have shape {rays.shape[:2]}, got {qd.shape}, {qc.shape}"
-        )
-    d = qd[::stride, ::stride]
-    keep = np.isfinite(d) & (d > 0)
-    points = [(rays[::stride, ::stride] * d[..., None])[keep]]
-    weights = [qc[::stride, ::stride][keep]]
+    size = (camera.height, camera.width)
+    if qd.shape != size or qc.shape != qd.shape:
+        raise ValueError(f"query depth/confidence must have shape {size}, got {qd.shape}, {qc.shape}")
+    query, weight = depth_points(camera, qd, qc, stride=stride, min_confidence=min_confidence)
+    points, weights = [query], [weight]
     if reference_depths is not None:
         rd = np.asarray(reference_depths, float)
         T = np.asarray(T_qi, float)
@@ -240,12 +239,10 @@ def reconstruction_points(
                 f"need reference_depths (k, {qd.shape[0]}, {qd.shape[1]}), T_qi (k, 4, 4) and "
                 f"reference_weights (k,); got {rd.shape}, {T.shape}, {rw.shape}"
             )
-        r_rays = rays[::reference_stride, ::reference_stride]
         for i in np.flatnonzero(rw > 0):
-            d = rd[i, ::reference_stride, ::reference_stride]
-            keep = np.isfinite(d) & (d > 0)
-            points.append(transform_points(T[i], (r_rays * d[..., None])[keep]))
-            weights.append(np.full(int(keep.sum()), rw[i]))
+            reference, _ = depth_points(camera, rd[i], stride=reference_stride)
+            points.append(transform_points(T[i], reference))
+            weights.append(np.full(len(reference), rw[i]))
     return np.concatenate(points), np.concatenate(weights)
 
 
