@@ -15,8 +15,9 @@ from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
 from vgpnav_env.perception.occupancy import OccupancyConfig
-from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, PoseGate, perceive
+from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, perceive
 from vgpnav_env.perception.retrieval import VladConfig, select_references
+from vgpnav_env.perception.verify import PoseGate, VerifyConfig
 from vgpnav_env.runs import load_run, load_run_depth
 
 #: Small vocabulary so the index fits in about a second.
@@ -203,7 +204,7 @@ def test_single_pair_fallback(database: Database, query) -> None:
     assert result.localized and result.detail.startswith("single-pair fallback"), result.detail
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
-    off = replace(on, single_fallback_confidence=None)
+    off = replace(on, verify=VerifyConfig(single_fallback_confidence=None))
     lost = Perceiver(database, _OnePairBackbone(seed=0), config=off).perceive(run.images[i], priv)
     assert lost.status == "lost" and lost.reason == "no consensus"
 
@@ -238,7 +239,7 @@ def test_second_round_verifies_references_around_a_lone_pair(database: Database,
     assert result.motion.inliers.sum() >= 3
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
-    one_round = replace(config, expand_below_inliers=None)
+    one_round = replace(config, verify=VerifyConfig(second_round_below_inliers=None))
     single = Perceiver(database, _KnownFailures(first[1:], seed=0), config=one_round).perceive(
         run.images[i], priv
     )
@@ -247,9 +248,8 @@ def test_second_round_verifies_references_around_a_lone_pair(database: Database,
 
 def test_pose_at_the_wrong_camera_height_is_rejected(database: Database, query) -> None:
     run, depth = query
-    config = PerceptionConfig(
-        camera_height=QUERY_HEIGHT, expand_below_inliers=None, single_fallback_confidence=None
-    )
+    verify = VerifyConfig(second_round_below_inliers=None, single_fallback_confidence=None)
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT, verify=verify)
     perceiver = Perceiver(database, SimulatedBackbone(seed=0), config=config)
     perceiver.initialize(run.images[0], Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0]))
     lifted = run.poses[2].copy()

@@ -50,7 +50,8 @@ from numpy.typing import NDArray
 from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
-from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult, PoseGate
+from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
+from vgpnav_env.perception.verify import PoseGate
 from vgpnav_env.robot import Action, predict_pose
 
 logger = logging.getLogger(__name__)

@@ -108,6 +108,13 @@ def _weighted_median(x: NDArray[np.float64], w: NDArray[np.float64]) -> float:
     return float(x[o][np.searchsorted(cw, 0.5 * cw[-1])])
 
 
+def pair_centre(T_wi: ArrayLike, T_iq: ArrayLike, scale: float) -> NDArray[np.float64]:
+    """World centre of the query placed by one pair: the reference centre ``c_i`` plus the pair's
+    translation ``t_iq`` (backbone units) at ``scale`` metres per unit, rotated into W."""
+    T_wi, T_iq = np.asarray(T_wi, float), np.asarray(T_iq, float)
+    return T_wi[:3, 3] + scale * T_wi[:3, :3] @ T_iq[:3, 3]
+
+
 def ray_residuals(
     t: ArrayLike, centres: NDArray[np.float64], dirs: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -235,7 +242,7 @@ def average_motion(
     if config.method == "single":
         usable = np.flatnonzero(finite)
         i = int(usable[0] if config.single_reference == "first" else usable[np.argmax(conf[usable])])
-        T = make_pose(R_hyp[i], c[i] + single_scale * R_wi[i] @ t_iq[i])
+        T = make_pose(R_hyp[i], pair_centre(T_wi[i], T_iq[i], single_scale))
         w = np.zeros(k)
         w[i] = 1.0
         mask = w > 0
