@@ -1,7 +1,8 @@
 """The oracle: the A* agent fed the TRUE pose and the ground-truth obstacle map (the upper bound).
 
-It reads ``info["pose"]`` and the env's ground-truth map of the layout it drives in; every cell
-that is not free floor counts as an obstacle. Nothing here is available to a real agent.
+It reads the env's true pose (``env.unwrapped.pose``), the goal of the raw observation and the
+env's ground-truth map of the layout it drives in; every cell that is not free floor counts as an
+obstacle. Nothing here but the goal is available to a real agent.
 """
 
 from __future__ import annotations
@@ -12,10 +13,11 @@ import gymnasium as gym
 import numpy as np
 
 from vgpnav_env.agents.astar import AStarAgent
+from vgpnav_env.robot import Action
 
 
 class OracleAgent:
-    """``act(obs, info)`` with the true pose and the ground-truth map of ``env``'s layout."""
+    """``act(obs)`` with the true pose and the ground-truth map of ``env``'s layout."""
 
     def __init__(self, env: gym.Env, **agent_kwargs: Any) -> None:
         base = env.unwrapped
@@ -25,6 +27,7 @@ class OracleAgent:
         agent_kwargs.setdefault("robot_radius", base.robot_radius)
         agent_kwargs.setdefault("forward_step", base.forward_step)
         agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
+        self.base = base
         self.spec = gt.spec
         self.obstacles = ~np.asarray(gt.free, bool)
         self.agent = AStarAgent(**agent_kwargs)
@@ -32,5 +35,5 @@ class OracleAgent:
     def reset(self) -> None:
         self.agent.reset()
 
-    def act(self, obs: dict[str, Any], info: dict[str, Any]) -> int:
-        return self.agent.act(info["pose"], self.obstacles, self.spec, obs["goal"])
+    def act(self, obs: dict[str, Any]) -> Action:
+        return self.agent.act(self.base.pose, self.obstacles, self.spec, obs["goal"])

@@ -90,7 +90,7 @@ class SB3Policy:
     def reset(self) -> None:
         return None
 
-    def act(self, obs: Any, info: dict[str, Any]) -> Any:
+    def act(self, obs: Any) -> Any:
         action, _ = self.model.predict(obs, deterministic=True)
         return int(action) if np.ndim(action) == 0 else action
 

@@ -39,24 +39,29 @@ FAILURES = ("timeout", "stopped-too-far", "lost")
 
 
 class Policy(Protocol):
-    """What the protocol drives: ``reset()`` per episode, ``act(obs, info) -> action`` per step."""
+    """What the protocol drives: ``reset()`` per episode, ``act(obs) -> action`` per step.
+
+    Policies see observations only (plus what they were given at construction); the env's
+    ``info`` is for evaluation.
+    """
 
     def reset(self) -> None: ...
 
-    def act(self, obs: Any, info: dict[str, Any]) -> Any: ...
+    def act(self, obs: Any) -> Any: ...
 
 
 class PerceptionAStar:
     """The A* agent on the VGP-Nav wrapper's estimated pose and fused obstacle map.
 
-    Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing), ``obs["localized"]``
-    and the wrapper's ``info["obstacles"]`` (bool grid) with ``info["map_spec"]`` (``GridSpec``).
+    Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing) and
+    ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles).
     Until the first localized frame of an episode it turns in place (there is no pose to plan
     from); after ``max_blind_steps`` dead-reckoned steps it turns in place for at most one full
     turn to look for a view that localizes, then goes on by dead reckoning.
     """
 
     def __init__(self, env: gym.Env, max_blind_steps: int = 8, **agent_kwargs: Any) -> None:
+        self.env = env
         base = env.unwrapped
         agent_kwargs.setdefault("robot_radius", base.robot_radius)
         agent_kwargs.setdefault("forward_step", base.forward_step)
@@ -72,7 +77,7 @@ class PerceptionAStar:
         self.blind = 0  # consecutive frames without localization
         self.searched = 0  # look-around turns in the current blind spell
 
-    def act(self, obs: dict[str, Any], info: dict[str, Any]) -> Action:
+    def act(self, obs: dict[str, Any]) -> Action:
         if int(np.asarray(obs["localized"]).reshape(-1)[0]):
             self.seen, self.blind, self.searched = True, 0, 0
         else:
@@ -84,7 +89,8 @@ class PerceptionAStar:
         x, y, yaw = np.asarray(obs["pose"], float)
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
-        return self.agent.act((x, y, yaw), info["obstacles"], info["map_spec"], goal)
+        fused = self.env.get_wrapper_attr("fused_map")
+        return self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal)
 
 
 def perception_wrapper(backbone: str, **wrapper_kwargs: Any) -> Callable[[gym.Env], gym.Env]:
@@ -151,7 +157,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> Epis
             estimated.append(est.tolist())
             errors.append(float(np.linalg.norm(est[:2] - info["pose"][:2])))
             localized.append(bool(np.asarray(obs.get("localized", 1)).reshape(-1)[0]))
-        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
         done = terminated or truncated
     lost_fraction = 1.0 - float(np.mean(localized)) if localized else None
     if info["success"]:

@@ -146,13 +146,13 @@ def test_perception_agent_looks_around_until_localized(database):
     assert obs["localized"] == 0
     actions = []
     for _ in range(3):
-        actions.append(policy.act(obs, info))
+        actions.append(policy.act(obs))
         obs, _, _, _, info = env.step(actions[-1])
     assert actions == [2, 2, 2]  # never localized: turn in place
     backbone.fail = False
-    obs, _, _, _, info = env.step(policy.act(obs, info))
+    obs, _, _, _, info = env.step(policy.act(obs))
     assert obs["localized"] == 1
-    assert policy.act(obs, info) in (1, 2, 3) and policy.seen and policy.blind == 0
+    assert policy.act(obs) in (1, 2, 3) and policy.seen and policy.blind == 0
     env.close()
 
 

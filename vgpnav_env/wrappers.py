@@ -1,73 +1,67 @@
 """``VGPNavObservation``: the point-goal env seen through VGP-Nav perception.
 
 The wrapper runs the VGP-Nav :class:`~vgpnav_env.perception.pipeline.Perceiver` on every camera
-image against the scene's database run and replaces the raw observation by a navigation state:
+image against the scene's database run, keeps the robot's pose between frames in a
+:class:`~vgpnav_env.perception.state.PoseState` (:class:`~vgpnav_env.perception.state.OdometryState`:
+dead reckoning by the robot's motion model, blocked steps seen in the pixels, the odometry gate
+``motion_gate`` that rejects a perceived pose jumping away from the prediction) and replaces the
+raw observation by a navigation state:
 
 ``Dict(pose=Box (3,) float32, goal_rel=Box (2,) float32, map=Box uint8 (1, S, S), localized=Discrete(2))``
 
 - ``pose``: estimated (x, y, yaw) of the robot in W (metres, radians), clipped to the map bounds
-  plus a margin. While perception is lost the last estimate is carried forward by the commanded
-  discrete motion (nominal odometry: ``forward_step`` ahead, ``turn_step`` turns; a forward step
-  after which the camera image did not change -- mean absolute grey difference of a small
-  thumbnail below ``stall_threshold`` levels -- was blocked and moves nothing). With
-  ``motion_gate`` (discrete actions), a perceived pose farther from that odometry prediction than
-  ``max_distance`` m / ``max_yaw_deg`` is rejected as lost before it is fused. Since the last
-  accepted fix the distance grows by ``growth_m`` per forward step and the angle by ``growth_deg``
-  per turn (odometry uncertainty grows with motion, not with time: turning in place to look
-  around does not widen the distance gate), so a drifted estimate is re-captured once it moves.
+  plus a margin; the pose state's estimate (carried forward while perception is lost, the map
+  centre before the first fix of an episode).
 - ``goal_rel``: (distance m, bearing rad counter-clockwise from the estimated heading) of the goal.
 - ``map``: egocentric crop of the fused occupancy map (``S`` x ``S`` pixels of ``map_resolution``
   metres, row 0 ahead, columns to the right; 255 occupied, 128 free, 0 unknown), channels first.
 - ``localized``: 1 if this frame's pose came from perception, 0 if it was carried forward.
 
-``info`` keeps the env's entries (true pose etc., for evaluation) and adds ``perception`` (the
-frame's status, reason, ``T_wc``, scale, scale source, anchored ground height, references and
-confident pairs), ``estimated_pose``, ``obstacles`` (bool grid of occupied cells of the fused map)
-with ``map_spec`` (its ``GridSpec``), and ``localization_error_m``. The full
-:class:`PerceptionResult` of the last frame (points, timings) is ``wrapper.last_result`` and the
-live fused ``LogOddsMap`` is ``wrapper.perceiver.map``; they stay out of ``info`` so that ``info``
-is comparable between runs (timings differ).
+Agents that plan in the world frame read the wrapper's attributes (``env.get_wrapper_attr``):
+``fused_map``, the live fused :class:`~vgpnav_env.perception.occupancy.LogOddsMap` (``occupied()``,
+``spec``), and ``pose_state``; the world goal is the estimated pose plus ``goal_rel``. The full
+:class:`PerceptionResult` of the last frame (points, timings) is ``last_result``.
+
+``info`` is for evaluation only: it keeps the env's entries (true pose etc.) and adds
+``perception`` (the frame's status, reason, ``T_wc``, scale, scale source, anchored ground height,
+references and confident pairs), ``estimated_pose``, ``localized``, ``obstacles`` (bool grid of
+occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``), and
+``localization_error_m`` (horizontal error of the observed ``pose``). Timings stay out of it so
+that ``info`` is comparable between runs.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
-rendered with tiny yaw offsets initialise the ground anchor (paper: ground height initialisation
-with the known camera height). The wrapper also sets the env's render overlay (estimated pose
-and fused obstacles).
+rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
+height initialisation with the known camera height). The wrapper also sets the env's render
+overlay (estimated pose and fused obstacles).
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import astuple
 from pathlib import Path
 from typing import Any
 
-import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
+from vgpnav_env.geometry import wrap_angle
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
+from vgpnav_env.perception.occupancy import LogOddsMap
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
-from vgpnav_env.perception.verify import PoseGate
-from vgpnav_env.robot import Action, predict_pose
+from vgpnav_env.perception.state import STALL_THRESHOLD, GateConfig, OdometryState, PoseState
+from vgpnav_env.robot import base_pose
 
 logger = logging.getLogger(__name__)
 
 POSE_MARGIN_M = 5.0
 #: Default odometry gate: (max_distance m, max_yaw_deg, growth m per forward step and growth deg per
-#: turn since the last fix).
-MOTION_GATE = (0.5, 30.0, 0.1, 5.0)
-#: Mean absolute grey-level change (of a 40x30 thumbnail) below which a forward step was blocked.
-STALL_THRESHOLD = 0.5
-
-
-def _thumbnail(rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
-    """A 40x30 grey thumbnail (float grey levels) for detecting a blocked step from pixels."""
-    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
-    return cv2.resize(grey, (40, 30), interpolation=cv2.INTER_AREA).astype(np.float32)
+#: turn since the last fix), see :class:`~vgpnav_env.perception.state.GateConfig`.
+MOTION_GATE = astuple(GateConfig())
 
 
 def scene_database_dir(env: gym.Env, seed: int = 0, progress: bool = False) -> Path:
@@ -142,16 +136,11 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise ValueError("VGPNavObservation needs camera images: make the env with render_rgb=True")
         if not init_yaw_jitter_deg:
             raise ValueError("init_yaw_jitter_deg needs at least one yaw offset (0 = the first view)")
-        if motion_gate is not None and (len(motion_gate) != 4 or min(motion_gate) <= 0):
+        if motion_gate is not None and len(motion_gate) != 4:
             raise ValueError(
                 "motion_gate must be None or (max_distance m, max_yaw_deg, growth m per forward step, "
-                "growth deg per turn), "
-                f"all positive; got {motion_gate}"
+                f"growth deg per turn), all positive; got {motion_gate}"
             )
-        self.motion_gate = motion_gate
-        if stall_threshold < 0:
-            raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {stall_threshold}")
-        self.stall_threshold = float(stall_threshold)
         if database is None:
             if database_dir is None:
                 database_dir = scene_database_dir(env, build_seed)
@@ -167,7 +156,16 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         goal_space = base.observation_space["goal"]
         lo = np.append(goal_space.low - POSE_MARGIN_M, -np.pi).astype(np.float32)
         hi = np.append(goal_space.high + POSE_MARGIN_M, np.pi).astype(np.float32)
-        self._pose_low, self._pose_high = lo, hi
+        self.pose_state: PoseState = OdometryState(
+            base.camera_T_wc,
+            lo,
+            hi,
+            discrete=base.action_mode == "discrete",
+            forward_step=base.forward_step,
+            turn_step=base.turn_step,
+            gate=None if motion_gate is None else GateConfig(*motion_gate),
+            stall_threshold=stall_threshold,
+        )
         max_dist = float(np.linalg.norm(hi[:2] - lo[:2]))
         self.observation_space = spaces.Dict(
             {
@@ -182,8 +180,12 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 "localized": spaces.Discrete(2),
             }
         )
-        self.estimate: NDArray[np.float64] = np.zeros(3)
         self.last_result: PerceptionResult | None = None
+
+    @property
+    def fused_map(self) -> LogOddsMap:
+        """The live fused occupancy map of this episode (updated by every localized frame)."""
+        return self.perceiver.map
 
     @property
     def backbone_privileged(self) -> bool:
@@ -211,76 +213,32 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             images.append(frame.rgb)
             privileged.append(self._privileged(base.camera_T_wc(view), frame.depth))
         result = self.perceiver.initialize(images, privileged)[0]
-        self.estimate = np.zeros(3)
-        self._have_estimate = False
-        self._moves_since_fix = np.zeros(2)  # forward steps, turns
-        self._thumbnail = _thumbnail(obs["rgb"])
-        return self._observe(obs, info, result, None)
+        self.pose_state.reset(obs["rgb"], fallback=(*self.perceiver.map.spec.centre, 0.0))
+        return self._observe(obs, info, result)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        thumbnail = _thumbnail(obs["rgb"])
-        stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.stall_threshold
-        self._thumbnail = thumbnail
-        if stalled and action is not None and self.env.unwrapped.action_mode == "discrete":
-            action = Action.STOP if action == Action.FORWARD else action  # blocked: the robot stayed
-        predicted = self._dead_reckon(action) if self._have_estimate else None
-        if action is not None and self.env.unwrapped.action_mode == "discrete":
-            turn = action in (Action.TURN_LEFT, Action.TURN_RIGHT)
-            self._moves_since_fix += (action == Action.FORWARD, turn)
-        result = self.perceiver.perceive(
-            obs["rgb"], self._privileged(info["T_wc"], info["depth"]), gate=self._gate(predicted)
-        )
-        new_obs, info = self._observe(obs, info, result, predicted)
+        self.pose_state.predict(action, obs["rgb"])
+        privileged = self._privileged(info["T_wc"], info["depth"])
+        result = self.perceiver.perceive(obs["rgb"], privileged, gate=self.pose_state.gate())
+        new_obs, info = self._observe(obs, info, result)
         return new_obs, reward, terminated, truncated, info
 
-    def _dead_reckon(self, action: Any) -> NDArray[np.float64]:
-        """The estimate moved by the commanded discrete action (unchanged for continuous actions)."""
-        base = self.env.unwrapped
-        if action is None or base.action_mode != "discrete":
-            return self.estimate.copy()
-        return predict_pose(self.estimate, action, base.forward_step, base.turn_step)
-
-    def _gate(self, predicted: NDArray[np.float64] | None) -> PoseGate | None:
-        """The odometry gate around ``predicted`` (None: no estimate yet, no gate, or continuous actions)."""
-        base = self.env.unwrapped
-        if predicted is None or self.motion_gate is None or base.action_mode != "discrete":
-            return None
-        distance, yaw_deg, growth_m, growth_deg = self.motion_gate
-        forward, turns = self._moves_since_fix
-        return PoseGate(
-            base.camera_T_wc(predicted),
-            distance + growth_m * forward,
-            float(np.radians(yaw_deg + growth_deg * turns)),
-        )
-
     def _observe(
-        self,
-        obs: dict[str, NDArray],
-        info: dict[str, Any],
-        result: PerceptionResult,
-        predicted: NDArray[np.float64] | None,
+        self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult
     ) -> tuple[dict[str, Any], dict[str, Any]]:
+        """The navigation observation (and the evaluation info) after the pose state took in ``result``."""
         localized = result.localized and result.T_wc is not None
-        if localized:
-            yaw, _ = camera_yaw_pitch(result.T_wc)
-            self.estimate = np.array([result.T_wc[0, 3], result.T_wc[1, 3], yaw])
-            self._have_estimate = True
-            self._moves_since_fix = np.zeros(2)
-        elif predicted is not None:
-            self.estimate = predicted
-        else:  # never localized in this episode: nothing better than the map centre
-            self.estimate = np.array([*self.perceiver.map.spec.centre, 0.0])
-        self.estimate = np.clip(self.estimate, self._pose_low, self._pose_high)
+        self.pose_state.correct(base_pose(result.T_wc) if localized else None)
+        estimate = self.pose_state.estimate
         self.last_result = result
-        x, y, yaw = self.estimate
-        goal = np.asarray(obs["goal"], float)
-        d = goal - self.estimate[:2]
+        x, y, yaw = estimate
+        d = np.asarray(obs["goal"], float) - estimate[:2]
         occupancy = self.perceiver.map
         crop = occupancy.egocentric_crop(x, y, yaw, self.map_size, self.map_resolution)
         max_dist = float(self.observation_space["goal_rel"].high[0])
         new_obs = {
-            "pose": self.estimate.astype(np.float32),
+            "pose": estimate.astype(np.float32),
             "goal_rel": np.array(
                 [min(np.hypot(*d), max_dist), wrap_angle(np.arctan2(d[1], d[0]) - yaw)], np.float32
             ),
@@ -300,13 +258,13 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 "references": result.references,
                 "n_confident_pairs": result.n_confident_pairs,
             },
-            estimated_pose=self.estimate.copy(),
+            estimated_pose=estimate.copy(),
             localized=localized,
             obstacles=obstacles,
             map_spec=occupancy.spec,
-            localization_error_m=float(np.linalg.norm(self.estimate[:2] - np.asarray(info["pose"])[:2])),
+            localization_error_m=float(np.linalg.norm(new_obs["pose"][:2] - np.asarray(info["pose"])[:2])),
         )
         self.env.unwrapped.set_overlay(
-            estimated_pose=self.estimate, obstacles=occupancy.spec.cell_to_world(np.argwhere(obstacles))
+            estimated_pose=estimate, obstacles=occupancy.spec.cell_to_world(np.argwhere(obstacles))
         )
         return new_obs, info
