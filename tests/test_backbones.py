@@ -8,6 +8,7 @@ import pytest
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import (
     BACKBONES,
+    Backbone,
     BackboneOutput,
     ClassicalBackbone,
     Privileged,
@@ -54,6 +55,20 @@ def test_registry_builds_each_backbone_and_rejects_unknown_names():
     with pytest.raises(ValueError, match="learned backbone needs model and weights_path"):
         make_backbone("learned")
     assert sorted(BACKBONES) == ["classical", "learned", "simulated"]
+
+
+def test_the_base_checks_every_backbone_input_before_reconstruct():
+    class Unreachable(Backbone):
+        def reconstruct(self, views):
+            raise AssertionError("reconstruct runs on checked inputs only")
+
+    image = np.zeros((TINY.height, TINY.width, 3), np.uint8)
+    with pytest.raises(ValueError, match="query image must be uint8"):
+        Unreachable()(image.astype(np.float32), [image], TINY)
+    with pytest.raises(ValueError, match=r"reference 0 image must be uint8 with shape \(6, 8, 3\)"):
+        Unreachable()(image, [image[:4]], TINY)
+    with pytest.raises(ValueError, match="2 reference_keys for 1 references"):
+        Unreachable()(image, [image], TINY, reference_keys=[0, 1])
 
 
 def test_reseed_draws_the_episode_stream_from_the_given_generator():

@@ -186,13 +186,31 @@ def test_wrong_image_size_is_a_clear_error(database: Database) -> None:
         perceive(np.zeros((10, 10, 3), np.uint8), database)
 
 
-class _OnePairBackbone(SimulatedBackbone):
-    """The simulated backbone with every pair but the first failed (confidence 0)."""
+class _FailingPairs(SimulatedBackbone):
+    """The simulated backbone with the pairs ``failed(views)`` marks (bool per reference) failed
+    (confidence 0)."""
 
-    def __call__(self, *args, **kwargs):
-        out = super().__call__(*args, **kwargs)
-        out.confidence[1:] = 0.0
+    def __init__(self, failed, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.failed = failed
+
+    def reconstruct(self, views):
+        out = super().reconstruct(views)
+        out.confidence[self.failed(views)] = 0.0
         return out
+
+
+def _one_pair(seed: int) -> _FailingPairs:
+    """Every pair but the first failed."""
+    return _FailingPairs(lambda views: np.arange(len(views.references)) > 0, seed=seed)
+
+
+def _known_failures(indices, seed: int) -> _FailingPairs:
+    """The pairs of the given database indices failed."""
+    failed = {int(i) for i in indices}
+    return _FailingPairs(
+        lambda views: np.array([int(key) in failed for key in views.reference_keys]), seed=seed
+    )
 
 
 def test_single_pair_fallback(database: Database, query) -> None:
@@ -200,28 +218,13 @@ def test_single_pair_fallback(database: Database, query) -> None:
     i = 2
     priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
     on = PerceptionConfig(camera_height=QUERY_HEIGHT)
-    result = Perceiver(database, _OnePairBackbone(seed=0), config=on).perceive(run.images[i], priv)
+    result = Perceiver(database, _one_pair(seed=0), config=on).perceive(run.images[i], priv)
     assert result.localized and result.detail.startswith("single-pair fallback"), result.detail
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
     off = replace(on, verify=VerifyConfig(single_fallback_confidence=None))
-    lost = Perceiver(database, _OnePairBackbone(seed=0), config=off).perceive(run.images[i], priv)
+    lost = Perceiver(database, _one_pair(seed=0), config=off).perceive(run.images[i], priv)
     assert lost.status == "lost" and lost.reason == "no consensus"
-
-
-class _KnownFailures(SimulatedBackbone):
-    """The simulated backbone with the pairs of the given database indices failed (confidence 0)."""
-
-    def __init__(self, failed, **kwargs) -> None:
-        super().__init__(**kwargs)
-        self.failed = {int(i) for i in failed}
-
-    def __call__(self, query, references, camera, privileged=None, reference_keys=None):
-        out = super().__call__(
-            query, references, camera, privileged=privileged, reference_keys=reference_keys
-        )
-        out.confidence[[int(key) in self.failed for key in reference_keys]] = 0.0
-        return out
 
 
 def test_second_round_verifies_references_around_a_lone_pair(database: Database, query) -> None:
@@ -230,7 +233,7 @@ def test_second_round_verifies_references_around_a_lone_pair(database: Database,
     priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
     config = PerceptionConfig(camera_height=QUERY_HEIGHT)
     first = select_references(database.index.similarity(run.images[i]), database.poses, config.retrieval)
-    result = Perceiver(database, _KnownFailures(first[1:], seed=0), config=config).perceive(
+    result = Perceiver(database, _known_failures(first[1:], seed=0), config=config).perceive(
         run.images[i], priv
     )
     assert result.localized and not result.detail, result.detail
@@ -240,7 +243,7 @@ def test_second_round_verifies_references_around_a_lone_pair(database: Database,
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
     one_round = replace(config, verify=VerifyConfig(second_round_below_inliers=None))
-    single = Perceiver(database, _KnownFailures(first[1:], seed=0), config=one_round).perceive(
+    single = Perceiver(database, _known_failures(first[1:], seed=0), config=one_round).perceive(
         run.images[i], priv
     )
     assert single.detail.startswith("single-pair fallback")
@@ -268,7 +271,7 @@ def test_second_round_tries_the_next_most_similar_images_when_no_pair_passed(
     config = PerceptionConfig(camera_height=QUERY_HEIGHT)
     sims = database.index.similarity(run.images[i])
     first = select_references(sims, database.poses, config.retrieval)
-    result = Perceiver(database, _KnownFailures(first, seed=0), config=config).perceive(run.images[i], priv)
+    result = Perceiver(database, _known_failures(first, seed=0), config=config).perceive(run.images[i], priv)
     untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
     assert result.localized and result.references.tolist() == untried
     dt, dr = errors(result.T_wc, run.poses[i])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vgpnav_env.perception.backbones import make_backbone
-from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
 from vgpnav_env.perception.database import DatabaseConfig, open_database
 from vgpnav_env.wrappers import VGPNavObservation
 
@@ -98,10 +98,10 @@ class FlakyBackbone(Backbone):
         self.inner = make_backbone("simulated", seed=0)
         self.fail = False
 
-    def __call__(self, query, references, camera, privileged=None, reference_keys=None) -> BackboneOutput:
+    def reconstruct(self, views: Views) -> BackboneOutput:
         if not self.fail:
-            return self.inner(query, references, camera, privileged, reference_keys)
-        k, shape = len(references), (camera.height, camera.width)
+            return self.inner.reconstruct(views)
+        k, shape = len(views.references), (views.camera.height, views.camera.width)
         return BackboneOutput(
             T_qi=np.tile(np.eye(4), (k, 1, 1)),
             confidence=np.zeros(k),
@@ -163,10 +163,10 @@ class ShiftedBackbone(FlakyBackbone):
         super().__init__()
         self.shift = 0.0
 
-    def __call__(self, query, references, camera, privileged=None, reference_keys=None) -> BackboneOutput:
-        T = privileged.T_wq.copy()
+    def reconstruct(self, views: Views) -> BackboneOutput:
+        T = views.privileged.T_wq.copy()
         T[0, 3] += self.shift
-        return self.inner(query, references, camera, replace(privileged, T_wq=T), reference_keys)
+        return self.inner.reconstruct(replace(views, privileged=replace(views.privileged, T_wq=T)))
 
 
 @pytest.mark.parametrize("gate", [True, False])

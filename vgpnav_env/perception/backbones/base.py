@@ -36,6 +36,20 @@ class Privileged:
     reference_depths: NDArray[np.floating] | None = None
 
 
+@dataclass(frozen=True)
+class Views:
+    """One backbone call's inputs, checked by :meth:`Backbone.__call__`: the ``query`` and the
+    ``references`` (uint8 (H, W, 3) of ``camera``'s size), ``privileged`` ground truth
+    (privileged backbones only) and optional ``reference_keys`` (stable ids, e.g. database
+    indices, for caching per-image work)."""
+
+    query: NDArray[np.uint8]
+    references: Sequence[NDArray[np.uint8]]
+    camera: PinholeCamera
+    privileged: Privileged | None = None
+    reference_keys: Sequence[Hashable] | None = None
+
+
 @dataclass
 class BackboneOutput:
     """What a backbone returns for one query and ``k`` references (see the module docstring).
@@ -104,8 +118,9 @@ class BackboneOutput:
 class Backbone(ABC):
     """A feed-forward reconstruction backbone; subclasses set ``name`` and ``privileged``.
 
-    Build one with :func:`vgpnav_env.perception.backbones.make_backbone`. A backbone that draws
-    random numbers overrides :meth:`reseed`, which callers run once per episode.
+    Build one with :func:`vgpnav_env.perception.backbones.make_backbone` and call it; a subclass
+    implements :meth:`reconstruct`. A backbone that draws random numbers overrides
+    :meth:`reseed`, which callers run once per episode.
     """
 
     name: str = "backbone"
@@ -118,7 +133,6 @@ class Backbone(ABC):
         seed from it, so episodes with the same ``rng`` state see the same noise.
         """
 
-    @abstractmethod
     def __call__(
         self,
         query: NDArray[np.uint8],
@@ -129,9 +143,16 @@ class Backbone(ABC):
     ) -> BackboneOutput:
         """Reconstruct the query and references (see the module docstring for frames and scale).
 
-        ``reference_keys`` are optional stable identifiers of the references (e.g. database
-        indices) a backbone may use to cache per-image work; backbones that cache nothing ignore them.
+        Images must be uint8 (H, W, 3) of ``camera``'s size (else ValueError). ``reference_keys``
+        are optional stable identifiers of the references (e.g. database indices) a backbone may
+        use to cache per-image work; ``privileged`` is read by privileged backbones only.
         """
+        check_inputs(query, references, camera, reference_keys)
+        return self.reconstruct(Views(query, references, camera, privileged, reference_keys))
+
+    @abstractmethod
+    def reconstruct(self, views: Views) -> BackboneOutput:
+        """The backbone's work on checked :class:`Views` (what :meth:`__call__` runs)."""
 
 
 def check_inputs(

@@ -28,7 +28,7 @@ import hashlib
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 import cv2
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
-from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged, check_inputs
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
 from vgpnav_env.perception.backbones.stereo import SweepConfig, grayscale, plane_sweep
 from vgpnav_env.perception.backbones.threads import thread_map
 
@@ -399,19 +399,12 @@ class ClassicalBackbone(Backbone):
             n_inliers,
         )
 
-    def __call__(
-        self,
-        query: NDArray[np.uint8],
-        references: Sequence[NDArray[np.uint8]],
-        camera: PinholeCamera,
-        privileged: Privileged | None = None,
-        reference_keys: Sequence[Hashable] | None = None,
-    ) -> BackboneOutput:
-        check_inputs(query, references, camera, reference_keys)
+    def reconstruct(self, views: Views) -> BackboneOutput:
+        query, references, camera = views.query, views.references, views.camera
         timings: dict[str, float] = {}
         clock = _StageClock(timings)
         k = len(references)
-        keys = list(reference_keys) if reference_keys is not None else [None] * k
+        keys = list(views.reference_keys) if views.reference_keys is not None else [None] * k
         memo = self._memo_for(query, camera)
         frefs = [self.features(ref, key) for ref, key in zip(references, keys, strict=True)]
         clock.lap("features")

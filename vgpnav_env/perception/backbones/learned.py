@@ -17,7 +17,7 @@ Scale convention ``"model"``: whatever the model normalises to (VGGT: mean point
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Hashable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import cv2
@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, invert_pose
-from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged, check_inputs
+from vgpnav_env.geometry import invert_pose
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
 
 ModelSpec = torch.nn.Module | Callable[[], torch.nn.Module] | str
 
@@ -99,15 +99,8 @@ class LearnedBackbone(Backbone):
         self.input_size = input_size
         self.confidence_transform = confidence_transform
 
-    def __call__(
-        self,
-        query: NDArray[np.uint8],
-        references: Sequence[NDArray[np.uint8]],
-        camera: PinholeCamera,
-        privileged: Privileged | None = None,
-        reference_keys: Sequence[Hashable] | None = None,
-    ) -> BackboneOutput:
-        check_inputs(query, references, camera, reference_keys)
+    def reconstruct(self, views: Views) -> BackboneOutput:
+        query, references, camera = views.query, views.references, views.camera
         images = [query, *references]
         if self.input_size is not None:
             images = [cv2.resize(im, self.input_size, interpolation=cv2.INTER_AREA) for im in images]

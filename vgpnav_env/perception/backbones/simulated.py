@@ -21,15 +21,14 @@ Noise model (all angles in degrees in the config, radians inside):
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from vgpnav_env.geometry import PinholeCamera, invert_pose
-from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged, check_inputs
+from vgpnav_env.geometry import invert_pose
+from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
 
 
 @dataclass(frozen=True)
@@ -88,20 +87,13 @@ class SimulatedBackbone(Backbone):
         """A new noise stream seeded by one draw from ``rng`` (see :meth:`Backbone.reseed`)."""
         self.rng = np.random.default_rng(int(rng.integers(2**63)))
 
-    def __call__(
-        self,
-        query: NDArray[np.uint8],
-        references: Sequence[NDArray[np.uint8]],
-        camera: PinholeCamera,
-        privileged: Privileged | None = None,
-        reference_keys: Sequence[Hashable] | None = None,
-    ) -> BackboneOutput:
+    def reconstruct(self, views: Views) -> BackboneOutput:
+        references, camera, privileged = views.references, views.camera, views.privileged
         if privileged is None:
             raise ValueError(
                 "the simulated backbone is privileged: pass `privileged=Privileged(T_wq, T_wi, query_depth)` "
                 "with ground truth (or use the 'classical' backbone, which needs pixels only)"
             )
-        check_inputs(query, references, camera, reference_keys)
         cfg, rng = self.config, self.rng
         k = len(references)
         T_wi = np.asarray(privileged.T_wi, float).reshape(-1, 4, 4)
