@@ -30,6 +30,7 @@ from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.arguments import seed_arg, size_arg
 from vgpnav_env.eval.perception_runs import add_backbone_arguments, backbone_options
 from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.measures import MEASURES, Measure
 from vgpnav_env.robot import Action
 
 logger = logging.getLogger(__name__)
@@ -121,89 +122,103 @@ def make_agent(
 
 @dataclass
 class EpisodeRecord:
-    """One evaluated episode (metres, radians; failure None on success)."""
+    """One evaluated episode (metres, radians; failure None on success).
+
+    ``metrics``: the episode value of every registered measure with a ``record`` name
+    (:mod:`vgpnav_env.measures`): ``final_distance``, ``final_euclidean_distance``, ``success``,
+    ``spl``, ``soft_spl``, ``collisions``, ``steps``, ``travelled``, and for agents with a pose
+    estimate ``localization_error_m`` (mean over the frames acted on) and ``lost_fraction`` (None
+    without an estimate).
+    """
 
     index: int
     seed: int
     start: list[float]
     goal: list[float]
     shortest_path_length: float
-    success: bool
-    spl: float
-    soft_spl: float
-    steps: int
-    collisions: int
-    travelled: float
-    final_distance: float
-    final_euclidean_distance: float
     failure: str | None
-    localization_error_m: float | None
-    lost_fraction: float | None
+    metrics: dict[str, Any]
     trajectory: list[list[float]] = field(repr=False)
     estimated_trajectory: list[list[float]] | None = field(default=None, repr=False)
 
+    def as_dict(self) -> dict[str, Any]:
+        """The record as one flat JSON-ready dict (the metrics beside the other fields)."""
+        fields = asdict(self)
+        head = {k: fields.pop(k) for k in ("index", "seed", "start", "goal", "shortest_path_length")}
+        return {**head, **fields.pop("metrics"), **fields}
+
+
+def _recorded() -> list[type[Measure]]:
+    return [m for m in MEASURES.values() if m.record]
+
+
+def _failure(metrics: dict[str, Any], stopped: bool) -> str | None:
+    lost = metrics.get("lost_fraction")
+    if metrics["success"]:
+        return None
+    if lost is not None and lost >= 0.5:
+        return "lost"
+    return "stopped-too-far" if stopped else "timeout"
+
 
 def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> EpisodeRecord:
-    """Drive one episode ``reset(seed=seed)`` to its end with ``policy``."""
+    """Drive one episode ``reset(seed=seed)`` to its end with ``policy``.
+
+    Per-frame measures are collected from ``info`` at every frame the policy acts on; the others
+    give their value at the end of the episode.
+    """
     obs, info = env.reset(seed=seed)
     policy.reset()
+    frames: dict[str, list[Any]] = {m.uuid: [] for m in _recorded() if m.per_frame}
     estimated: list[list[float]] = []
-    errors: list[float] = []
-    localized: list[bool] = []
     done = False
     while not done:
         if isinstance(obs, dict) and "pose" in obs:
-            est = np.asarray(obs["pose"], float)
-            estimated.append(est.tolist())
-            errors.append(float(np.linalg.norm(est[:2] - info["pose"][:2])))
-            localized.append(bool(np.asarray(obs.get("localized", 1)).reshape(-1)[0]))
+            estimated.append(np.asarray(obs["pose"], float).tolist())
+        for uuid, values in frames.items():
+            if uuid in info:
+                values.append(info[uuid])
         obs, _, terminated, truncated, info = env.step(policy.act(obs))
         done = terminated or truncated
-    lost_fraction = 1.0 - float(np.mean(localized)) if localized else None
-    if info["success"]:
-        failure = None
-    elif lost_fraction is not None and lost_fraction >= 0.5:
-        failure = "lost"
-    elif info["stopped"]:
-        failure = "stopped-too-far"
-    else:
-        failure = "timeout"
+    metrics: dict[str, Any] = {}
+    for m in _recorded():
+        values = frames[m.uuid] if m.per_frame else [info[m.uuid]] if m.uuid in info else []
+        metrics[m.record] = m.episode_value(values)
     return EpisodeRecord(
         index=index,
         seed=seed,
         start=[float(v) for v in info["start"]],
         goal=[float(v) for v in info["goal"]],
         shortest_path_length=float(info["shortest_path_length"]),
-        success=bool(info["success"]),
-        spl=float(info["spl"]),
-        soft_spl=float(info["soft_spl"]),
-        steps=int(info["steps"]),
-        collisions=int(info["collisions"]),
-        travelled=float(info["travelled"]),
-        final_distance=float(info["distance_to_goal"]),
-        final_euclidean_distance=float(info["euclidean_distance_to_goal"]),
-        failure=failure,
-        localization_error_m=float(np.mean(errors)) if errors else None,
-        lost_fraction=lost_fraction,
+        failure=_failure(metrics, info["stopped"]),
+        metrics=metrics,
         trajectory=np.asarray(env.unwrapped.trajectory).round(4).tolist(),
         estimated_trajectory=estimated or None,
     )
 
 
 def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
-    """Aggregate metrics over episode records."""
-    n = len(records)
-    loc = [r.localization_error_m for r in records if r.localization_error_m is not None]
-    return {
-        "episodes": n,
-        "success_rate": float(np.mean([r.success for r in records])) if n else 0.0,
-        "spl": float(np.mean([r.spl for r in records])) if n else 0.0,
-        "soft_spl": float(np.mean([r.soft_spl for r in records])) if n else 0.0,
-        "collisions_per_episode": float(np.mean([r.collisions for r in records])) if n else 0.0,
-        "mean_steps": float(np.mean([r.steps for r in records])) if n else 0.0,
-        "mean_localization_error_m": float(np.mean(loc)) if loc else None,
-        "failures": {f: sum(r.failure == f for r in records) for f in FAILURES},
-    }
+    """Aggregates over episode records: the mean of every measure with a ``summary`` key (over
+    the episodes that have a value; None if none has) and the failure counts."""
+    summary: dict[str, Any] = {"episodes": len(records)}
+    for m in _recorded():
+        if m.summary:
+            values = [r.metrics[m.record] for r in records if r.metrics.get(m.record) is not None]
+            summary[m.summary] = float(np.mean(values)) if values else None
+    summary["failures"] = {f: sum(r.failure == f for r in records) for f in FAILURES}
+    return summary
+
+
+def episode_table(records: list[EpisodeRecord]) -> str:
+    """Markdown table of the episodes: index, seed, shortest path, every measure with a ``column``
+    and the failure."""
+    columns = [m for m in _recorded() if m.column]
+    header = ["#", "seed", "shortest (m)", *(m.column for m in columns), "failure"]
+    rows = [
+        (r.index, r.seed, r.shortest_path_length, *(r.metrics[m.record] for m in columns), r.failure or "")
+        for r in records
+    ]
+    return markdown_table(header, rows)
 
 
 def plot_trajectory(env: gym.Env, record: EpisodeRecord, path: Path) -> None:
@@ -233,8 +248,9 @@ def plot_trajectory(env: gym.Env, record: EpisodeRecord, path: Path) -> None:
     ax.add_patch(
         plt.Circle(record.goal, env.unwrapped.success_distance, fill=False, ls=":", color="tab:purple")
     )
-    outcome = "success" if record.success else record.failure
-    ax.set_title(f"episode {record.index} (seed {record.seed}): {outcome}, SPL {record.spl:.2f}")
+    outcome = record.failure or "success"
+    spl = record.metrics["spl"]
+    ax.set_title(f"episode {record.index} (seed {record.seed}): {outcome}, SPL {spl:.2f}")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_aspect("equal")
@@ -293,41 +309,10 @@ def evaluate_navigation(
         "seed": seed,
         "image_size": list(size),
         **summarize(records),
-        "records": [asdict(r) for r in records],
+        "records": [r.as_dict() for r in records],
     }
     if out_dir is not None:
-        rows = [
-            (
-                r.index,
-                r.seed,
-                r.shortest_path_length,
-                r.success,
-                r.spl,
-                r.soft_spl,
-                r.steps,
-                r.collisions,
-                r.final_euclidean_distance,
-                r.failure or "",
-                r.localization_error_m,
-            )
-            for r in records
-        ]
-        table = markdown_table(
-            [
-                "#",
-                "seed",
-                "shortest (m)",
-                "success",
-                "SPL",
-                "soft SPL",
-                "steps",
-                "collisions",
-                "final d (m)",
-                "failure",
-                "loc. err (m)",
-            ],
-            rows,
-        )
+        table = episode_table(records)
         pictures = "\n".join(f"![episode {r.index}](trajectories/episode_{r.index:03d}.png)" for r in records)
         write_report(
             out_dir,

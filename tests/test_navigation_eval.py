@@ -73,23 +73,26 @@ def test_bad_agent_names_are_rejected(tmp_path, capsys):
 
 
 def _record(success: bool, failure: str | None, loc: float | None = None) -> EpisodeRecord:
+    metrics = {
+        "success": success,
+        "spl": 0.8 * success,
+        "soft_spl": 0.5,
+        "steps": 10,
+        "collisions": 1,
+        "travelled": 2.5,
+        "final_distance": 0.2,
+        "final_euclidean_distance": 0.2,
+        "localization_error_m": loc,
+        "lost_fraction": None,
+    }
     return EpisodeRecord(
         index=0,
         seed=0,
         start=[0, 0, 0],
         goal=[1, 1],
         shortest_path_length=2.0,
-        success=success,
-        spl=0.8 * success,
-        soft_spl=0.5,
-        steps=10,
-        collisions=1,
-        travelled=2.5,
-        final_distance=0.2,
-        final_euclidean_distance=0.2,
         failure=failure,
-        localization_error_m=loc,
-        lost_fraction=None,
+        metrics=metrics,
         trajectory=[],
     )
 
@@ -100,6 +103,16 @@ def test_summary_aggregates_and_counts_failures():
     assert s["mean_localization_error_m"] == pytest.approx(0.2)
     assert s["failures"] == {"timeout": 1, "stopped-too-far": 0, "lost": 1}
     assert s["collisions_per_episode"] == 1.0 and np.isfinite(s["soft_spl"])
+    assert list(s) == [
+        "episodes",
+        "success_rate",
+        "spl",
+        "soft_spl",
+        "collisions_per_episode",
+        "mean_steps",
+        "mean_localization_error_m",
+        "failures",
+    ]
 
 
 def test_astar_with_privileged_perception_reports_localization(home_build, tmp_path):

@@ -75,8 +75,8 @@ def test_perception_astar_reaches_goal_with_privileged_backbone(wrapped):
     from vgpnav_env.eval.navigation import PerceptionAStar, run_episode
 
     record = run_episode(wrapped, PerceptionAStar(wrapped), seed=0)
-    assert record.success, record.failure
-    assert record.localization_error_m < 0.05 and record.lost_fraction == 0.0
+    assert record.metrics["success"], record.failure
+    assert record.metrics["localization_error_m"] < 0.05 and record.metrics["lost_fraction"] == 0.0
 
 
 def test_wrapper_rejects_bad_setups(database):

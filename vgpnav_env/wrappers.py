@@ -24,9 +24,10 @@ Agents that plan in the world frame read the wrapper's attributes (``env.get_wra
 
 ``info`` is for evaluation only: it keeps the env's entries (true pose etc.) and adds
 ``perception`` (the frame's status, reason, ``T_wc``, scale, scale source, anchored ground height,
-references and confident pairs), ``estimated_pose``, ``localized``, ``obstacles`` (bool grid of
-occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``), and
-``localization_error_m`` (horizontal error of the observed ``pose``). Timings stay out of it so
+references and confident pairs), ``estimated_pose``, ``obstacles`` (bool grid of occupied cells of
+the fused map) with ``map_spec`` (its ``GridSpec``), and the metrics of the ``"estimate"``
+measures of :mod:`vgpnav_env.measures`: ``localization_error_m`` (horizontal error of the observed
+``pose``) and ``localized``. Timings stay out of it so
 that ``info`` is comparable between runs.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
@@ -49,6 +50,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import wrap_angle
+from vgpnav_env.measures import EstimateState, Measurements
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.occupancy import LogOddsMap
@@ -181,6 +183,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             }
         )
         self.last_result: PerceptionResult | None = None
+        self.measurements = Measurements("estimate")
 
     @property
     def fused_map(self) -> LogOddsMap:
@@ -214,18 +217,18 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             privileged.append(self._privileged(base.camera_T_wc(view), frame.depth))
         result = self.perceiver.initialize(images, privileged)[0]
         self.pose_state.reset(obs["rgb"], fallback=(*self.perceiver.map.spec.centre, 0.0))
-        return self._observe(obs, info, result)
+        return self._observe(obs, info, result, first=True)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.pose_state.predict(action, obs["rgb"])
         privileged = self._privileged(info["T_wc"], info["depth"])
         result = self.perceiver.perceive(obs["rgb"], privileged, gate=self.pose_state.gate())
-        new_obs, info = self._observe(obs, info, result)
+        new_obs, info = self._observe(obs, info, result, first=False)
         return new_obs, reward, terminated, truncated, info
 
     def _observe(
-        self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult
+        self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult, first: bool
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         """The navigation observation (and the evaluation info) after the pose state took in ``result``."""
         localized = result.localized and result.T_wc is not None
@@ -246,6 +249,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "localized": int(localized),
         }
         obstacles = occupancy.occupied()
+        state = EstimateState(new_obs["pose"], localized, np.asarray(info["pose"]))
+        (self.measurements.reset if first else self.measurements.update)(state)
         info = dict(info)
         info.update(
             perception={
@@ -259,10 +264,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 "n_confident_pairs": result.n_confident_pairs,
             },
             estimated_pose=estimate.copy(),
-            localized=localized,
             obstacles=obstacles,
             map_spec=occupancy.spec,
-            localization_error_m=float(np.linalg.norm(new_obs["pose"][:2] - np.asarray(info["pose"])[:2])),
+            **self.measurements.metrics(),
         )
         self.env.unwrapped.set_overlay(
             estimated_pose=estimate, obstacles=occupancy.spec.cell_to_world(np.argwhere(obstacles))

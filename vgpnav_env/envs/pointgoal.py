@@ -18,6 +18,7 @@ from vgpnav_env.envs.topdown import TopDownMap
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.grid import largest_component, path_length, shortest_path
 from vgpnav_env.groundtruth import GroundTruthMap, ground_truth_map
+from vgpnav_env.measures import EnvState, Measurements
 from vgpnav_env.render import Frame, MujocoRenderer
 from vgpnav_env.robot import (
     CAMERA_HEIGHT,
@@ -129,10 +130,11 @@ class PointGoalEnv(gym.Env):
 
     ## Info (evaluation only: agents must not read it)
     ``pose`` (x, y, yaw) true, ``T_wc`` 4x4 camera pose, ``depth`` (H, W) float32 z-depth (None
-    without rendering), ``distance_to_goal`` (geodesic, m), ``euclidean_distance_to_goal``,
+    without rendering), then the metric of every ``"env"`` measure of :mod:`vgpnav_env.measures`
+    under its uuid: ``distance_to_goal`` (geodesic, m), ``euclidean_distance_to_goal``,
     ``success``, ``spl`` = success * shortest / max(shortest, travelled), ``soft_spl`` =
     max(0, 1 - d / d_start) * shortest / max(shortest, travelled), ``collisions``, ``steps``,
-    ``travelled`` (m), ``shortest_path_length`` (m), ``start`` (x, y, yaw), ``goal`` (x, y),
+    ``travelled`` (m); then ``shortest_path_length`` (m), ``start`` (x, y, yaw), ``goal`` (x, y),
     ``blocked`` (this step's motion hit something), ``stopped``.
 
     ## Rendering
@@ -222,6 +224,8 @@ class PointGoalEnv(gym.Env):
 
         self.episode: Episode | None = None
         self._field: GeodesicField | None = None
+        self.measurements = Measurements("env")
+        self._state: EnvState | None = None
         self._done = True
         self._rgb = np.zeros((height, width, 3), np.uint8)
         self._depth: NDArray[np.float32] | None = None
@@ -309,14 +313,8 @@ class PointGoalEnv(gym.Env):
             self.episode = replace(self.episode, geodesic=path_length(path))
         self._field = field
         self.robot.set_pose(self.episode.start)
-        self._start_distance = field(self.episode.start[:2])
-        self._distance = self._start_distance
-        self._steps = 0
-        self._collisions = 0
-        self._travelled = 0.0
-        self._success = False
-        self._stopped = False
-        self._blocked = False
+        self._state = EnvState(self.episode, self.robot.pose, None, field, self.success_distance)
+        self.measurements.reset(self._state)
         self._done = False
         self._overlay = {}
         self.trajectory = [self.robot.pose]
@@ -366,20 +364,18 @@ class PointGoalEnv(gym.Env):
         before = self.robot.pose
         stop, blocked = self._move(action)
         after = self.robot.pose
-        self._steps += 1
-        self._blocked = blocked
-        self._collisions += int(blocked)
-        self._travelled += float(np.linalg.norm(after[:2] - before[:2]))
         self.trajectory.append(after)
-        previous = self._distance
-        self._distance = self._field(after[:2])
-        euclid = float(np.linalg.norm(after[:2] - np.asarray(self.episode.goal)))
-        self._stopped = stop
-        self._success = stop and euclid <= self.success_distance
+        m = self.measurements
+        previous = m["distance_to_goal"].metric
+        self._state = EnvState(
+            self.episode, after, before, self._field, self.success_distance, action, stop, blocked
+        )
+        m.update(self._state)
         terminated = stop
-        truncated = not terminated and self._steps >= self.max_steps
+        truncated = not terminated and m["steps"].metric >= self.max_steps
         self._done = terminated or truncated
-        reward = (previous - self._distance) + SUCCESS_REWARD * self._success - STEP_PENALTY
+        distance = m["distance_to_goal"].metric
+        reward = (previous - distance) + SUCCESS_REWARD * m["success"].metric - STEP_PENALTY
         return self._observe(), float(reward), terminated, truncated, self._info()
 
     # -- observation, info, rendering ---------------------------------------------------------
@@ -392,26 +388,16 @@ class PointGoalEnv(gym.Env):
     def _info(self) -> dict[str, Any]:
         ep = self.episode
         pose = self.robot.pose
-        shortest = ep.geodesic
-        efficiency = shortest / max(shortest, self._travelled, 1e-9)
-        soft = max(0.0, 1.0 - self._distance / max(self._start_distance, 1e-9))
         return {
             "pose": pose,
             "T_wc": self.camera_T_wc(pose),
             "depth": self._depth if self.render_rgb else None,
-            "distance_to_goal": self._distance,
-            "euclidean_distance_to_goal": float(np.linalg.norm(pose[:2] - np.asarray(ep.goal))),
-            "success": self._success,
-            "spl": float(self._success) * efficiency,
-            "soft_spl": soft * efficiency,
-            "collisions": self._collisions,
-            "steps": self._steps,
-            "travelled": self._travelled,
-            "shortest_path_length": shortest,
+            **self.measurements.metrics(),
+            "shortest_path_length": ep.geodesic,
             "start": np.asarray(ep.start),
             "goal": np.asarray(ep.goal),
-            "blocked": self._blocked,
-            "stopped": self._stopped,
+            "blocked": self._state.blocked,
+            "stopped": self._state.stopped,
         }
 
     def top_down(self, height_px: int | None = None) -> NDArray[np.uint8]:

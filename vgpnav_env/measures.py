@@ -1,0 +1,323 @@
+"""Navigation measures, Habitat-style: one small registered class per metric, one registry.
+
+A :class:`Measure` starts an episode with ``reset_metric(state, measures)`` and follows every step
+with ``update_metric(state, measures)``; its current value is ``metric``. A measure that reads
+others names their uuids in ``depends_on``; :class:`Measurements` resets and updates a scope's
+measures in dependency order (as habitat-lab's ``habitat/tasks/nav/nav.py``). A new metric is one
+class decorated with :func:`register_measure`; the env's ``info``, the navigation protocol's
+episode records, its summaries and its report table pick it up from :data:`MEASURES`.
+
+Scopes (what a measure reads):
+
+- ``"env"``: an :class:`EnvState`, the point-goal env's ground truth after a reset or a step. The
+  env puts these metrics into ``info`` under their uuids.
+- ``"estimate"``: an :class:`EstimateState`, the pose estimate an agent observes beside the true
+  pose; the VGP-Nav wrapper puts these metrics into its ``info``.
+
+How a measure appears in evaluations (class attributes): ``record``, its field in an episode
+record (None: not recorded); ``per_frame``, False: the record holds the final value, True: the
+value over the frames the agent acted on (:meth:`Measure.episode_value`, None without frames);
+``summary``, the key of its mean over episodes in a report (None: not summarised); ``column``, its
+header in the report's episode table (None: not shown).
+
+Units: metres, radians; poses are (x, y, yaw) in W.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from graphlib import CycleError, TopologicalSorter
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from vgpnav_env.envs.episodes import Episode
+
+SCOPES = ("env", "estimate")
+
+
+@dataclass(frozen=True)
+class EnvState:
+    """The env's ground truth after a reset (``previous_pose`` and ``action`` None) or a step.
+
+    ``geodesic(xy)``: geodesic distance (m) from a point to the goal; ``action``: this step's
+    action; ``stopped``: it was the stop action; ``blocked``: its motion hit something.
+    """
+
+    episode: Episode
+    pose: NDArray[np.float64]
+    previous_pose: NDArray[np.float64] | None
+    geodesic: Callable[[NDArray[np.float64]], float]
+    success_distance: float
+    action: Any = None
+    stopped: bool = False
+    blocked: bool = False
+
+
+@dataclass(frozen=True)
+class EstimateState:
+    """The observed pose estimate (x, y, yaw), whether perception localized this frame, and the
+    true pose."""
+
+    estimate: NDArray[np.float64]
+    localized: bool
+    true_pose: NDArray[np.float64]
+
+
+class Measure:
+    """One metric (see the module docstring); subclasses set ``uuid`` and implement the updates."""
+
+    uuid: ClassVar[str]
+    scope: ClassVar[str] = "env"
+    depends_on: ClassVar[tuple[str, ...]] = ()
+    record: ClassVar[str | None] = None
+    per_frame: ClassVar[bool] = False
+    summary: ClassVar[str | None] = None
+    column: ClassVar[str | None] = None
+
+    def __init__(self) -> None:
+        self.metric: Any = None
+
+    def reset_metric(self, state: Any, measures: Measurements) -> None:
+        """Start an episode (default: the same as an update)."""
+        self.update_metric(state, measures)
+
+    def update_metric(self, state: Any, measures: Measurements) -> None:
+        raise NotImplementedError
+
+    @classmethod
+    def episode_value(cls, values: Sequence[Any]) -> Any:
+        """The episode record's value: ``per_frame``, the mean of the values at the frames the agent
+        acted on; else the last of ``values`` (the final value). None without values."""
+        if not len(values):
+            return None
+        return float(np.mean(values)) if cls.per_frame else values[-1]
+
+
+#: uuid -> measure class, in registration order (the order of info keys, records and tables).
+MEASURES: dict[str, type[Measure]] = {}
+
+
+def register_measure(cls: type[Measure]) -> type[Measure]:
+    """Class decorator: add a measure to :data:`MEASURES` (uuids are unique)."""
+    if cls.uuid in MEASURES:
+        raise ValueError(f"a measure with uuid {cls.uuid!r} is already registered")
+    if cls.scope not in SCOPES:
+        raise ValueError(f"measure {cls.uuid!r} has scope {cls.scope!r}; allowed: {SCOPES}")
+    MEASURES[cls.uuid] = cls
+    return cls
+
+
+class Measurements:
+    """The registered measures of one scope, reset and updated in dependency order."""
+
+    def __init__(self, scope: str) -> None:
+        classes = [cls for cls in MEASURES.values() if cls.scope == scope]
+        if not classes:
+            raise ValueError(f"no measures registered for scope {scope!r}; scopes: {SCOPES}")
+        self.measures: dict[str, Measure] = {cls.uuid: cls() for cls in classes}
+        self._order = _dependency_order(classes)
+
+    def __getitem__(self, uuid: str) -> Measure:
+        return self.measures[uuid]
+
+    def reset(self, state: Any) -> None:
+        for uuid in self._order:
+            self.measures[uuid].reset_metric(state, self)
+
+    def update(self, state: Any) -> None:
+        for uuid in self._order:
+            self.measures[uuid].update_metric(state, self)
+
+    def metrics(self) -> dict[str, Any]:
+        """uuid -> current value, in registration order."""
+        return {uuid: m.metric for uuid, m in self.measures.items()}
+
+
+def _dependency_order(classes: list[type[Measure]]) -> list[str]:
+    """uuids so that every measure comes after the ones it depends on (same scope only)."""
+    known = {cls.uuid for cls in classes}
+    for cls in classes:
+        for dep in cls.depends_on:
+            if dep not in known:
+                raise ValueError(
+                    f"measure {cls.uuid!r} depends on {dep!r}, which is not a {cls.scope!r} measure"
+                )
+    try:
+        return list(TopologicalSorter({cls.uuid: cls.depends_on for cls in classes}).static_order())
+    except CycleError as e:
+        raise ValueError(f"measure dependencies form a cycle: {e.args[1]}") from e
+
+
+class Accumulated(Measure):
+    """A measure summing a per-step :meth:`increment` over the episode from ``initial`` at reset."""
+
+    initial: ClassVar[Any] = 0
+
+    def reset_metric(self, state: Any, measures: Measurements) -> None:
+        self.metric = self.initial
+
+    def update_metric(self, state: Any, measures: Measurements) -> None:
+        self.metric += self.increment(state)
+
+    def increment(self, state: Any) -> Any:
+        raise NotImplementedError
+
+
+def _efficiency(shortest: float, travelled: float) -> float:
+    """Path efficiency of SPL: shortest / max(shortest, travelled)."""
+    return shortest / max(shortest, travelled, 1e-9)
+
+
+# -- env measures ---------------------------------------------------------------------------
+
+
+@register_measure
+class DistanceToGoal(Measure):
+    """Geodesic distance (m) from the robot to the goal."""
+
+    uuid = "distance_to_goal"
+    record = "final_distance"
+
+    def update_metric(self, state: EnvState, measures: Measurements) -> None:
+        self.metric = state.geodesic(state.pose[:2])
+
+
+@register_measure
+class EuclideanDistanceToGoal(Measure):
+    """Straight-line distance (m) from the robot to the goal."""
+
+    uuid = "euclidean_distance_to_goal"
+    record = "final_euclidean_distance"
+    column = "final d (m)"
+
+    def update_metric(self, state: EnvState, measures: Measurements) -> None:
+        self.metric = float(np.linalg.norm(state.pose[:2] - np.asarray(state.episode.goal)))
+
+
+@register_measure
+class Success(Measure):
+    """``stop`` within ``success_distance`` m (Euclidean) of the goal."""
+
+    uuid = "success"
+    depends_on = ("euclidean_distance_to_goal",)
+    record = "success"
+    summary = "success_rate"
+    column = "success"
+
+    def update_metric(self, state: EnvState, measures: Measurements) -> None:
+        distance = measures["euclidean_distance_to_goal"].metric
+        self.metric = state.stopped and distance <= state.success_distance
+
+
+@register_measure
+class SPL(Measure):
+    """Success weighted by path length: success * shortest / max(shortest, travelled)."""
+
+    uuid = "spl"
+    depends_on = ("success", "travelled")
+    record = "spl"
+    summary = "spl"
+    column = "SPL"
+
+    def update_metric(self, state: EnvState, measures: Measurements) -> None:
+        travelled = measures["travelled"].metric
+        self.metric = float(measures["success"].metric) * _efficiency(state.episode.geodesic, travelled)
+
+
+@register_measure
+class SoftSPL(Measure):
+    """SPL with progress instead of success: max(0, 1 - d / d_start) * shortest / max(shortest,
+    travelled), d the geodesic distance to the goal."""
+
+    uuid = "soft_spl"
+    depends_on = ("distance_to_goal", "travelled")
+    record = "soft_spl"
+    summary = "soft_spl"
+    column = "soft SPL"
+
+    def reset_metric(self, state: EnvState, measures: Measurements) -> None:
+        self.start_distance = measures["distance_to_goal"].metric
+        self.update_metric(state, measures)
+
+    def update_metric(self, state: EnvState, measures: Measurements) -> None:
+        progress = max(0.0, 1.0 - measures["distance_to_goal"].metric / max(self.start_distance, 1e-9))
+        self.metric = progress * _efficiency(state.episode.geodesic, measures["travelled"].metric)
+
+
+@register_measure
+class Collisions(Accumulated):
+    """Steps whose motion hit something."""
+
+    uuid = "collisions"
+    record = "collisions"
+    summary = "collisions_per_episode"
+    column = "collisions"
+
+    def increment(self, state: EnvState) -> int:
+        return int(state.blocked)
+
+
+@register_measure
+class NumSteps(Accumulated):
+    """Steps taken in the episode."""
+
+    uuid = "steps"
+    record = "steps"
+    summary = "mean_steps"
+    column = "steps"
+
+    def increment(self, state: EnvState) -> int:
+        return 1
+
+
+@register_measure
+class Travelled(Accumulated):
+    """Distance (m) the robot moved (sum of its steps' straight displacements)."""
+
+    uuid = "travelled"
+    record = "travelled"
+    initial = 0.0
+
+    def increment(self, state: EnvState) -> float:
+        return float(np.linalg.norm(state.pose[:2] - state.previous_pose[:2]))
+
+
+# -- estimate measures ----------------------------------------------------------------------
+
+
+@register_measure
+class LocalizationError(Measure):
+    """Horizontal distance (m) between the observed pose estimate and the true pose; episodes
+    report its mean over the frames the agent acted on."""
+
+    uuid = "localization_error_m"
+    scope = "estimate"
+    record = "localization_error_m"
+    per_frame = True
+    summary = "mean_localization_error_m"
+    column = "loc. err (m)"
+
+    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
+        self.metric = float(np.linalg.norm(state.estimate[:2] - state.true_pose[:2]))
+
+
+@register_measure
+class Localized(Measure):
+    """Whether this frame's pose came from perception; episodes report the lost fraction of the
+    frames the agent acted on."""
+
+    uuid = "localized"
+    scope = "estimate"
+    record = "lost_fraction"
+    per_frame = True
+
+    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
+        self.metric = bool(state.localized)
+
+    @classmethod
+    def episode_value(cls, values: Sequence[Any]) -> Any:
+        """The fraction of frames that were not localized (None without frames)."""
+        return 1.0 - float(np.mean(values)) if len(values) else None
