@@ -1,10 +1,10 @@
 """Accuracy and speed of the classical backbone on rendered views of a built-in scene.
 
-Per trial: a query camera at 1.2 m (pitch 20 deg) at a random free spot, and ``k`` references
-at 1.5 m, 0.3-2 m away, looking at the point the query sees at its image centre (as a
-retrieval would return overlapping views). Reports, over all trials, the median rotation and
-translation-direction errors of the confident pairs, the fraction of pairs that passed, the
-query depth error on confident pixels (at the scale implied by the recovered baselines, and at
+Per trial: a query camera at the robot's camera height and pitch (1.2 m, 20 deg) at a random free
+spot, and ``k`` references at 1.5 m, 0.3-2 m away, looking at the point the query sees at its image
+centre (as a retrieval would return overlapping views). Reports, over all trials, the median
+rotation and translation-direction errors of the confident pairs, the fraction of pairs that passed,
+the query depth error on confident pixels (at the scale implied by the recovered baselines, and at
 the best-fit scale), and the time per call with reference features cold and cached.
 
     python benchmarks/backbone_classical.py --scene home --trials 10 --k 10
@@ -22,9 +22,10 @@ from numpy.typing import NDArray
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig
 from vgpnav_env.render import MujocoRenderer
+from vgpnav_env.robot import CAMERA_HEIGHT, CAMERA_PITCH_DEG, FOVY_DEG
 from vgpnav_env.scenes.scene import Scene
 
-PITCH = np.deg2rad(20.0)
+PITCH = np.deg2rad(CAMERA_PITCH_DEG)
 
 
 def free_view(depth: NDArray[np.float32], min_depth: float = 0.5) -> bool:
@@ -52,7 +53,7 @@ def sample_trial(
     camera = renderer.camera
     lo, hi = bounds[0, :2] + 0.5, bounds[1, :2] - 0.5
     for _ in range(attempts):
-        T_wq = camera_pose([*rng.uniform(lo, hi), 1.2], rng.uniform(-np.pi, np.pi), PITCH)
+        T_wq = camera_pose([*rng.uniform(lo, hi), CAMERA_HEIGHT], rng.uniform(-np.pi, np.pi), PITCH)
         query = renderer.render(T_wq)
         if not free_view(query.depth):
             continue
@@ -163,7 +164,7 @@ def main() -> None:
     from vgpnav_env.scenes import load_scene
 
     scene = load_scene(args.scene, layout=args.layout, texture=args.texture)
-    camera = PinholeCamera(320, 240, np.deg2rad(60.0))
+    camera = PinholeCamera(320, 240, np.deg2rad(FOVY_DEG))
     print(json.dumps(measure(scene, args.trials, args.k, args.seed, camera, ClassicalConfig()), indent=2))
 
 

@@ -31,7 +31,7 @@ from vgpnav_env.arguments import MAX_IMAGE_SIZE, seed_arg, size_arg
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.groundtruth import ground_truth_map
 from vgpnav_env.render import MujocoRenderer
-from vgpnav_env.robot import ROBOT_HEIGHT, ROBOT_RADIUS
+from vgpnav_env.robot import FOVY_DEG, ROBOT_HEIGHT, ROBOT_RADIUS
 from vgpnav_env.runs import (
     BUILD_FORMAT,
     BUILD_VERSION,
@@ -189,7 +189,7 @@ def build_runs(
     size: tuple[int, int] = DEFAULT_SIZE,
     seed: int = 0,
     texture: str = "realistic",
-    fovy_deg: float = 60.0,
+    fovy_deg: float = FOVY_DEG,
     query_lighting: str = "default",
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -306,7 +306,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--texture", choices=TEXTURE_LEVELS, default="realistic", help="texture level (default realistic)"
     )
     parser.add_argument(
-        "--fovy", type=float, default=60.0, help="vertical field of view in degrees (default 60)"
+        "--fovy",
+        type=float,
+        default=FOVY_DEG,
+        help=f"vertical field of view in degrees (default {FOVY_DEG:g})",
     )
     parser.add_argument(
         "--query-lighting",
