@@ -18,6 +18,7 @@ from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, Perceiver, PerceptionConfig, perceive
 from vgpnav_env.perception.retrieval import VladConfig, select_references
 from vgpnav_env.perception.verify import PoseGate, VerifyConfig
+from vgpnav_env.robot import base_pose
 from vgpnav_env.runs import load_run, load_run_depth
 
 #: Small vocabulary so the index fits in about a second.
@@ -289,7 +290,7 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
     far = T.copy()
     far[0, 3] += 1.0  # expected 1 m away: the (exact) pose is outside a 0.5 m gate
     before = perceiver.map.logodds.copy()
-    lost = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(far, 0.5, np.radians(30.0)))
+    lost = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(base_pose(far), 0.5, np.radians(30.0)))
     assert lost.status == "lost" and lost.reason == "inconsistent motion" and lost.reason in LOST_REASONS
     assert "1.00 m" in lost.detail and len(lost.points_w) == 0
     np.testing.assert_array_equal(perceiver.map.logodds, before)
@@ -297,10 +298,12 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
     near = far.copy()
     near[0, 3] -= 0.7
     near[:3, :3] = Rotation.from_euler("z", 20.0, degrees=True).as_matrix() @ T[:3, :3]
-    ok = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(near, 0.5, np.radians(30.0)))
+    ok = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(base_pose(near), 0.5, np.radians(30.0)))
     assert ok.status == "localized" and errors(ok.T_wc, T)[0] < 0.01
     assert not np.array_equal(perceiver.map.logodds, before)
     # A heading outside the gate is rejected too.
-    assert not PoseGate(near, 0.5, np.radians(15.0)).admits(T)
+    assert not PoseGate(base_pose(near), 0.5, np.radians(15.0)).admits(T)
     with pytest.raises(ValueError, match="max_distance"):
-        PoseGate(T, 0.0, 1.0)
+        PoseGate(base_pose(T), 0.0, 1.0)
+    with pytest.raises(ValueError, match="planar"):
+        PoseGate(T, 0.5, 1.0)

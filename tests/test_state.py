@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vgpnav_env.perception.state import GateConfig, OdometryState
-from vgpnav_env.robot import Action, camera_T_wc
+from vgpnav_env.robot import Action
 
 RNG = np.random.default_rng(0)
 IMAGES = [RNG.integers(0, 256, (60, 80, 3), dtype=np.uint8) for _ in range(4)]
@@ -14,7 +14,7 @@ LOW, HIGH = np.array([-10.0, -10.0, -np.pi]), np.array([10.0, 10.0, np.pi])
 
 
 def state(**kwargs) -> OdometryState:
-    s = OdometryState(camera_T_wc, LOW, HIGH, **kwargs)
+    s = OdometryState(LOW, HIGH, **kwargs)
     s.reset(IMAGES[0], fallback=(1.0, 2.0, 0.0))
     return s
 
@@ -51,7 +51,7 @@ def test_gate_is_centred_on_the_prediction_and_grows_with_motion_since_the_fix()
     s.correct(np.array([0.0, 0.0, 0.0]))
     s.predict(Action.FORWARD, IMAGES[1])
     gate = s.gate()
-    np.testing.assert_allclose(gate.T_wc, camera_T_wc((0.25, 0.0, 0.0)))
+    np.testing.assert_allclose(gate.pose, (0.25, 0.0, 0.0))
     assert gate.max_distance == pytest.approx(0.6) and gate.max_yaw == pytest.approx(np.radians(30))
     s.correct(None)
     s.predict(Action.TURN_RIGHT, IMAGES[2])

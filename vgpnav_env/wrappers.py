@@ -159,7 +159,6 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         lo = np.append(goal_space.low - POSE_MARGIN_M, -np.pi).astype(np.float32)
         hi = np.append(goal_space.high + POSE_MARGIN_M, np.pi).astype(np.float32)
         self.pose_state: PoseState = OdometryState(
-            base.camera_T_wc,
             lo,
             hi,
             discrete=base.action_mode == "discrete",

@@ -26,7 +26,6 @@ centre). Estimates are clipped to the box [``low``, ``high``].
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -95,13 +94,11 @@ class OdometryState:
 
     ``discrete``: the actions are :class:`~vgpnav_env.robot.Action` values moving
     ``forward_step`` m / ``turn_step`` rad (else continuous commands: no dead reckoning, no gate).
-    ``camera_T_wc(pose)``: the camera pose of the robot at a planar pose (for the gate).
     ``gate``: a :class:`GateConfig`, or None for no gate.
     """
 
     def __init__(
         self,
-        camera_T_wc: Callable[[NDArray[np.float64]], NDArray[np.float64]],
         low: ArrayLike,
         high: ArrayLike,
         *,
@@ -113,7 +110,6 @@ class OdometryState:
     ) -> None:
         if stall_threshold < 0:
             raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {stall_threshold}")
-        self.camera_T_wc = camera_T_wc
         self.low, self.high = np.asarray(low), np.asarray(high)
         self.discrete = bool(discrete)
         self.forward_step, self.turn_step = float(forward_step), float(turn_step)
@@ -164,7 +160,7 @@ class OdometryState:
             return None
         forward, turns = self._moves_since_fix
         return PoseGate(
-            self.camera_T_wc(self._predicted),
+            self._predicted,
             cfg.max_distance + cfg.growth_m * forward,
             float(np.radians(cfg.max_yaw_deg + cfg.growth_deg * turns)),
         )

@@ -84,20 +84,20 @@ class VerifyConfig:
 
 @dataclass(frozen=True)
 class PoseGate:
-    """Where the caller expects the camera (e.g. its last fix moved by odometry): a pose whose
-    horizontal position is more than ``max_distance`` metres from ``T_wc``'s, or whose heading
-    (camera yaw) differs by more than ``max_yaw`` radians, is lost ("inconsistent motion") and
-    is not fused into the map. One wrong reference set can place a frame metres away; a robot
-    cannot jump there in one step.
+    """Where the caller expects the robot (e.g. its last fix moved by odometry): the planar ``pose``
+    (x, y, yaw) in W. A camera pose whose horizontal position is more than ``max_distance`` metres
+    from (x, y), or whose heading (camera yaw) differs from yaw by more than ``max_yaw`` radians, is
+    lost ("inconsistent motion") and is not fused into the map. One wrong reference set can place a
+    frame metres away; a robot cannot jump there in one step.
     """
 
-    T_wc: NDArray[np.float64]
+    pose: NDArray[np.float64]
     max_distance: float
     max_yaw: float
 
     def __post_init__(self) -> None:
-        if np.shape(self.T_wc) != (4, 4):
-            raise ValueError(f"PoseGate.T_wc must be a 4x4 pose, got shape {np.shape(self.T_wc)}")
+        if np.shape(self.pose) != (3,):
+            raise ValueError(f"PoseGate.pose must be a planar (x, y, yaw), got shape {np.shape(self.pose)}")
         if not (self.max_distance > 0 and self.max_yaw > 0):
             raise ValueError(
                 f"max_distance (m) and max_yaw (rad) must be positive, "
@@ -105,9 +105,10 @@ class PoseGate:
             )
 
     def deviation(self, T_wc: NDArray[np.float64]) -> tuple[float, float]:
-        """(horizontal distance m, absolute heading difference rad) of ``T_wc`` from the gate's pose."""
-        distance = float(np.linalg.norm(T_wc[:2, 3] - self.T_wc[:2, 3]))
-        yaw = abs(float(wrap_angle(camera_yaw_pitch(T_wc)[0] - camera_yaw_pitch(self.T_wc)[0])))
+        """(horizontal distance m, absolute heading difference rad) of the camera ``T_wc`` from the
+        gate's pose."""
+        distance = float(np.linalg.norm(T_wc[:2, 3] - np.asarray(self.pose[:2], float)))
+        yaw = abs(float(wrap_angle(camera_yaw_pitch(T_wc)[0] - self.pose[2])))
         return distance, yaw
 
     def admits(self, T_wc: NDArray[np.float64]) -> bool:
