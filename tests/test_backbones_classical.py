@@ -134,3 +134,61 @@ def test_matching_and_scale_linking_units():
     pairs[2] = Pair(np.arange(20), depth[:20] * np.geomspace(0.2, 5.0, 20), 50)
     scales, linked = link_scales(pairs, min_common=8, max_spread=0.15)
     np.testing.assert_array_equal(linked, [True, True, False, False])
+
+
+def test_threads_do_not_change_the_result(scene, result):
+    _, out = result
+    threaded = ClassicalBackbone(ClassicalConfig(threads=2))
+    serial = ClassicalBackbone(ClassicalConfig(threads=1))
+    keys = list(range(K_REFS))
+    for backbone in (threaded, serial):
+        again = backbone(scene["query"], scene["refs"], CAMERA, reference_keys=keys)
+        np.testing.assert_array_equal(again.T_qi, out.T_qi)
+        np.testing.assert_array_equal(again.confidence, out.confidence)
+        np.testing.assert_array_equal(again.query_depth, out.query_depth)
+        np.testing.assert_array_equal(again.query_depth_confidence, out.query_depth_confidence)
+    with pytest.raises(ValueError, match="threads"):
+        ClassicalConfig(threads=-1)
+
+
+def test_a_second_call_on_the_same_query_reuses_its_features_and_pairs(scene, monkeypatch):
+    backbone = ClassicalBackbone()
+    calls = []
+    original = ClassicalBackbone.relative_pose
+
+    def counting(self, fq, fr, camera):
+        calls.append(fr)
+        return original(self, fq, fr, camera)
+
+    monkeypatch.setattr(ClassicalBackbone, "relative_pose", counting)
+    first = backbone(scene["query"], scene["refs"][:3], CAMERA, reference_keys=[0, 1, 2])
+    assert len(calls) == 3
+    second = backbone(scene["query"], scene["refs"][1:], CAMERA, reference_keys=[1, 2, 3, 4])
+    assert len(calls) == 5  # only references 3 and 4 are new
+    np.testing.assert_array_equal(second.T_qi[:2, :3, :3], first.T_qi[1:, :3, :3])
+    fresh = ClassicalBackbone()(scene["query"], scene["refs"][1:], CAMERA, reference_keys=[1, 2, 3, 4])
+    np.testing.assert_array_equal(second.T_qi, fresh.T_qi)
+    np.testing.assert_array_equal(second.query_depth, fresh.query_depth)
+    # Unkeyed references and another query image are computed anew.
+    before = len(calls)
+    backbone(scene["query"], scene["refs"][1:2], CAMERA)
+    assert len(calls) == before + 1
+    backbone(scene["refs"][0], scene["refs"][1:3], CAMERA, reference_keys=[1, 2])
+    assert len(calls) == before + 3
+
+
+def test_matching_equals_the_explicit_mutual_ratio_test():
+    rng = np.random.default_rng(1)
+    a = np.abs(rng.standard_normal((300, 128))).astype(np.float32)
+    near = a[:150] + 0.05 * np.abs(rng.standard_normal((150, 128)))
+    b = np.concatenate([near, np.abs(rng.random((200, 128)))])
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = (b / np.linalg.norm(b, axis=1, keepdims=True)).astype(np.float32)
+    sim = a.astype(np.float64) @ b.T.astype(np.float64)
+    expected = []
+    for i in range(len(a)):
+        order = np.argsort(-sim[i])
+        d1, d2 = np.sqrt(2 - 2 * sim[i, order[:2]])
+        if d1 < 0.8 * d2 and np.argmax(sim[:, order[0]]) == i:
+            expected.append((i, order[0]))
+    np.testing.assert_array_equal(match_descriptors(a, b, ratio=0.8, mutual=True), np.array(expected))

@@ -6,7 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from vgpnav_env.geometry import camera_pose
+from vgpnav_env.geometry import PinholeCamera, camera_pose
+from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, classical
+from vgpnav_env.perception.backbones.classical import detect_sift
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
     VladConfig,
@@ -18,6 +20,7 @@ from vgpnav_env.perception.retrieval import (
 )
 
 STEP = 40  # pixels between database crops of the panorama
+CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +89,37 @@ def test_save_load_round_trip_and_fingerprint(index: VladIndex, panorama: np.nda
     (tmp_path / "vlad_index.json").write_text("{not json")
     with pytest.raises(ValueError, match="corrupt VLAD index"):
         VladIndex.load(tmp_path)
+
+
+def test_sift_index_fits_from_given_features_and_shares_the_query_extraction(
+    panorama: np.ndarray, tmp_path, monkeypatch
+) -> None:
+    crops = [np.ascontiguousarray(panorama[:, x : x + 320]) for x in range(0, 1281, STEP)]
+    sift, config = ClassicalConfig(), VladConfig(local_features="sift", n_words=32)
+    index = VladIndex.fit(crops, config=config, seed=0, sift=sift, threads=2)
+    given = [ClassicalBackbone(sift).extract(c).descriptors for c in crops]
+    fitted = VladIndex.fit(crops, config=config, seed=0, sift=sift, descriptors=given)
+    np.testing.assert_array_equal(fitted.database, index.database)
+    assert int(np.argmax(index.similarity(panorama[:, 200:520]))) == 5
+    # The feature settings are part of the cache key.
+    index.save(tmp_path)
+    assert VladIndex.load(tmp_path, sift=ClassicalConfig(max_keypoints=500)) is None
+    assert VladIndex.load(tmp_path, sift=sift) is not None
+    # Retrieval and the backbone extract a query image once.
+    detected = []
+    monkeypatch.setattr(classical, "detect_sift", lambda *a: detected.append(1) or detect_sift(*a))
+    query = np.ascontiguousarray(panorama[:, 333:653])
+    index.similarity(query)
+    ClassicalBackbone(sift)(query, [crops[8]], CAMERA, reference_keys=[8])
+    assert len(detected) == 2  # the query once, the reference once
+
+
+def test_dense_extraction_on_threads_is_the_same(index: VladIndex, panorama: np.ndarray) -> None:
+    crops = [panorama[:, x : x + 320] for x in range(0, 1281, STEP)]
+    threaded = VladIndex.fit(crops, config=VladConfig(n_words=32), seed=0, threads=2)
+    np.testing.assert_array_equal(threaded.database, index.database)
+    with pytest.raises(ValueError, match="local_features"):
+        VladConfig(local_features="orb")
 
 
 def test_whitening_keeps_retrieval(panorama: np.ndarray) -> None:

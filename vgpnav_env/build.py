@@ -215,25 +215,32 @@ def build_runs(
 
     t0 = time.perf_counter()
     camera = PinholeCamera(size[0], size[1], float(np.deg2rad(fovy_deg)))
-    scenes = {
-        "database": load_scene(source, layout=LAYOUTS["database"], texture=texture),
-        "query": load_scene(source, layout=LAYOUTS["query"], texture=texture, lighting=query_lighting),
-    }
+    label = scene_slug(source)
+    logger.info("building %s (%dx%d, seed %d, %s) -> %s", label, size[0], size[1], seed, texture, out)
+    scenes: dict[str, Scene] = {}
     poses: dict[str, np.ndarray] = {}
     areas: dict[str, float] = {}
-    for i, (kind, scene) in enumerate(scenes.items()):
-        gt = ground_truth_map(
-            scene, resolution=GRID_RESOLUTION, robot_radius=ROBOT_RADIUS, robot_height=ROBOT_HEIGHT
-        )
-        areas[kind] = float(gt.navigable.sum()) * gt.spec.resolution**2
-        rng = np.random.default_rng([seed, i])
-        poses[kind] = coverage_trajectory(gt.navigable, gt.spec, rng, **TRAJECTORIES[kind])
-        logger.info("%s trajectory: %d frames over %.1f m2 navigable", kind, len(poses[kind]), areas[kind])
+    steps = [(kind, step) for kind in LAYOUTS for step in ("scene", "ground truth and trajectory")]
+    with tqdm(total=len(steps), desc=f"{label}: scenes", unit="step", disable=not progress) as bar:
+        for i, kind in enumerate(LAYOUTS):
+            bar.set_description(f"{label}: {LAYOUTS[kind]} layout, scene")
+            lighting = query_lighting if kind == "query" else "default"
+            scenes[kind] = load_scene(source, layout=LAYOUTS[kind], texture=texture, lighting=lighting)
+            bar.update()
+            bar.set_description(f"{label}: {LAYOUTS[kind]} layout, ground truth and trajectory")
+            gt = ground_truth_map(
+                scenes[kind], resolution=GRID_RESOLUTION, robot_radius=ROBOT_RADIUS, robot_height=ROBOT_HEIGHT
+            )
+            areas[kind] = float(gt.navigable.sum()) * gt.spec.resolution**2
+            rng = np.random.default_rng([seed, i])
+            poses[kind] = coverage_trajectory(gt.navigable, gt.spec, rng, **TRAJECTORIES[kind])
+            logger.info("%s trajectory: %d frames over %.1f m2", kind, len(poses[kind]), areas[kind])
+            bar.update()
 
     name = scenes["database"].name
     runs: dict[str, tuple[Run, np.ndarray]] = {}
     total = sum(len(p) for p in poses.values())
-    with tqdm(total=total, desc=f"rendering {name}", unit="frame", disable=not progress) as bar:
+    with tqdm(total=total, desc=f"{label}: rendering", unit="frame", disable=not progress) as bar:
         for kind, scene in scenes.items():
             images, depth = _render_run(scene, poses[kind], camera, bar)
             meta = {
@@ -267,9 +274,12 @@ def build_runs(
     }
 
     def write(tmp: Path) -> None:
-        for kind, (run, depth) in runs.items():
-            (tmp / kind).mkdir()
-            write_run(tmp / kind, run, depth)
+        with tqdm(total=total, desc=f"{label}: writing", unit="frame", disable=not progress) as bar:
+            for kind, (run, depth) in runs.items():
+                bar.set_description(f"{label}: writing the {kind} run")
+                (tmp / kind).mkdir()
+                write_run(tmp / kind, run, depth)
+                bar.update(len(run))
         summary["build_seconds"] = round(time.perf_counter() - t0, 2)
         write_json(tmp / "summary.json", summary)
 

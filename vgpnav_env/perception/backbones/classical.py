@@ -20,16 +20,23 @@ pose ambiguous (on rendered homes, gross pairs had h ~0.9 vs ~0.7 for good ones)
 A dense query depth comes from :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`
 against the widest-baseline of the most confident linked references (see that module for the
 method and its confidence).
+
+Speed: the pairs and the sweep's plane chunks run on ``ClassicalConfig.threads`` threads (OpenCV,
+poselib and numpy release the GIL; results do not depend on the count); a query image's RootSIFT
+is extracted once per process (:func:`rootsift`, shared with the VLAD retrieval) and the two-view
+results of its keyed pairs are kept for a second call on the same image.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Hashable
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -110,6 +117,89 @@ class Features:
         desc = np.asarray(sift, np.float32)
         desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
         return cls(np.asarray(keypoints, float).reshape(-1, 2), desc.reshape(-1, 128))
+
+
+def sift_settings(config: ClassicalConfig) -> dict[str, Any]:
+    """The :class:`ClassicalConfig` fields that determine an image's SIFT features."""
+    return {
+        "max_keypoints": config.max_keypoints,
+        "sift_contrast_threshold": config.sift_contrast_threshold,
+        "clahe_clip": config.clahe_clip,
+    }
+
+
+_thread_detectors = threading.local()
+
+
+def detect_sift(
+    image: NDArray[np.uint8], config: ClassicalConfig
+) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
+    """SIFT keypoint pixels (n, 2) float32 and raw descriptors (n, 128) uint8 of an RGB image
+    (lossless: OpenCV's SIFT values are integers 0..255); :meth:`Features.from_sift` makes RootSIFT.
+    Each thread keeps its own OpenCV detectors, so images can be processed on several threads."""
+    settings = tuple(sift_settings(config).values())
+    detectors = _thread_detectors.__dict__.setdefault("by_settings", {})
+    if settings not in detectors:
+        clip = config.clahe_clip
+        detectors[settings] = (
+            cv2.SIFT_create(nfeatures=config.max_keypoints, contrastThreshold=config.sift_contrast_threshold),
+            cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 else None,
+        )
+    sift, clahe = detectors[settings]
+    gray = grayscale(image)
+    if clahe is not None:
+        gray = clahe.apply(gray)
+    keypoints, desc = sift.detectAndCompute(gray, None)
+    if desc is None or len(keypoints) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8)
+    pts = np.array([kp.pt for kp in keypoints], np.float32)
+    return pts, np.clip(np.rint(desc), 0, 255).astype(np.uint8)
+
+
+def image_digest(image: NDArray[np.uint8]) -> bytes:
+    """A content key of an image (BLAKE2b of its shape and pixels)."""
+    image = np.ascontiguousarray(image)
+    digest = hashlib.blake2b(str(image.shape).encode(), digest_size=16)
+    digest.update(image.data)
+    return digest.digest()
+
+
+_recent_lock = threading.Lock()
+_recent: OrderedDict[tuple[bytes, tuple[Any, ...]], Features] = OrderedDict()
+_RECENT_ITEMS = 4
+
+
+def _features_key(image: NDArray[np.uint8], config: ClassicalConfig) -> tuple[bytes, tuple[Any, ...]]:
+    return image_digest(image), tuple(sift_settings(config).values())
+
+
+def _remember(key: tuple[bytes, tuple[Any, ...]], features: Features) -> None:
+    with _recent_lock:
+        _recent[key] = features
+        _recent.move_to_end(key)
+        while len(_recent) > _RECENT_ITEMS:
+            _recent.popitem(last=False)
+
+
+def remember_features(image: NDArray[np.uint8], config: ClassicalConfig, features: Features) -> None:
+    """Make :func:`rootsift` return ``features`` (already extracted with ``config``, e.g. a database
+    image's stored features) for ``image``."""
+    _remember(_features_key(image, config), features)
+
+
+def rootsift(image: NDArray[np.uint8], config: ClassicalConfig) -> Features:
+    """RootSIFT :class:`Features` of an RGB image with ``config``'s feature settings, shared in the
+    process by image content: the last few images' features are kept, so that global retrieval and
+    the backbone extract a query image once."""
+    key = _features_key(image, config)
+    with _recent_lock:
+        features = _recent.get(key)
+        if features is not None:
+            _recent.move_to_end(key)
+            return features
+    features = Features.from_sift(*detect_sift(image, config))
+    _remember(key, features)
+    return features
 
 
 class FeatureCache:
@@ -297,24 +387,11 @@ class ClassicalBackbone(Backbone):
     ) -> None:
         self.config = config or ClassicalConfig()
         self.feature_cache = feature_cache if feature_cache is not None else FeatureCache()
-        self._sift = cv2.SIFT_create(
-            nfeatures=self.config.max_keypoints, contrastThreshold=self.config.sift_contrast_threshold
-        )
-        clip = self.config.clahe_clip
-        self._clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(8, 8)) if clip > 0 else None
         self._query_memo: _QueryMemo | None = None
 
     def detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
-        """SIFT keypoint pixels (n, 2) float32 and raw descriptors (n, 128) uint8 of an RGB image
-        (lossless: OpenCV's SIFT values are integers 0..255); :meth:`Features.from_sift` makes RootSIFT."""
-        gray = grayscale(image)
-        if self._clahe is not None:
-            gray = self._clahe.apply(gray)
-        keypoints, desc = self._sift.detectAndCompute(gray, None)
-        if desc is None or len(keypoints) == 0:
-            return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8)
-        pts = np.array([kp.pt for kp in keypoints], np.float32)
-        return pts, np.clip(np.rint(desc), 0, 255).astype(np.uint8)
+        """SIFT keypoints and raw descriptors of an RGB image with this config (:func:`detect_sift`)."""
+        return detect_sift(image, self.config)
 
     def extract(self, image: NDArray[np.uint8]) -> Features:
         """RootSIFT keypoints of an RGB image (L1-normalise, square root: unit L2 norm)."""
@@ -331,11 +408,11 @@ class ClassicalBackbone(Backbone):
 
     def _memo_for(self, query: NDArray[np.uint8], camera: PinholeCamera) -> _QueryMemo:
         """The memo of this query image and camera (features extracted on a miss)."""
-        digest = hashlib.blake2b(np.ascontiguousarray(query).data, digest_size=16)
+        digest = hashlib.blake2b(image_digest(query), digest_size=16)
         digest.update(np.asarray([camera.width, camera.height, *camera.K.ravel()], np.float64).data)
         key = digest.digest()
         if self._query_memo is None or self._query_memo.key != key:
-            self._query_memo = _QueryMemo(key, self.extract(query))
+            self._query_memo = _QueryMemo(key, rootsift(query, self.config))
         return self._query_memo
 
     def relative_pose(

@@ -291,8 +291,8 @@ class _RefStack:
         # reference leaving the view on the left hid the whole image): zero the unseen pixels and
         # mark windows that reach them instead.
         unseen = np.isnan(warped)
-        warped[unseen] = 0.0
-        seen = (~unseen).view(np.uint8)
+        np.copyto(warped, 0.0, where=unseen)
+        seen = np.logical_not(unseen).view(np.uint8)
         square, cross, a, b, c, d = (buf[name] for name in ("square", "cross", "a", "b", "c", "d"))
         np.multiply(warped, warped, out=square)
         np.multiply(self.stacked_q, warped, out=cross)
@@ -311,8 +311,8 @@ class _RefStack:
             b += 1e-3
             np.sqrt(b, out=b)
             np.divide(c, b, out=c)
-            visible = cv2.erode(seen, self.kernels[k], borderValue=1)
-            c[visible == 0] = -np.inf
+            visible = cv2.erode(seen, self.kernels[k], borderValue=1).view(bool)
+            np.copyto(c, -np.inf, where=np.logical_not(visible))
             per_ref = c.reshape(self.n_refs, rows, w)[:, g : g + h]
             scores[k, plane] = top_mean(per_ref, keep)
 
@@ -324,8 +324,10 @@ def winner_take_all(
     (score * uniqueness * texture * visibility) and whether any reference sees the pixel, from
     NCC ``scores`` (planes, h, w; NaN unseen) and the query's windowed variance ``var_q``."""
     n_planes, h, w = scores.shape
-    visible = np.isfinite(scores).any(axis=0)
-    filled = np.where(np.isfinite(scores), scores, -1.0)
+    unseen = np.isnan(scores)
+    visible = ~unseen.all(axis=0)
+    filled = scores.copy()
+    np.copyto(filled, -1.0, where=unseen)
     best = filled.argmax(axis=0)
     rows, cols = np.indices((h, w))
     s0 = filled[best, rows, cols]
