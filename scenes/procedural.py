@@ -62,10 +62,12 @@ def _item(entry: dict[str, Any]) -> Item:
 
 @dataclass(frozen=True)
 class Catalogue:
-    """What procedural scenes are made of (``builtin/catalogue.yaml``): ``furniture[style][room
-    kind]``, ``floors[style][room kind]`` and ``paints[style]`` material choices, what people wear
-    and the object kinds the changed layouts may move."""
+    """What procedural scenes are made of (``builtin/catalogue.yaml``): ``plan[style]`` band
+    dimension ranges, ``furniture[style][room kind]``, ``floors[style][room kind]`` and
+    ``paints[style]`` material choices, what people wear and the object kinds the changed layouts
+    may move."""
 
+    plan: dict[str, dict[str, tuple[float, float]]]
     furniture: dict[str, dict[str, tuple[Item, ...]]]
     floors: dict[str, dict[str, tuple[str, ...]]]
     paints: dict[str, tuple[str, ...]]
@@ -80,6 +82,10 @@ def load_catalogue(path: Path = CATALOGUE_FILE) -> Catalogue:
     """The catalogue YAML as typed data (cached; treat it as read-only)."""
     data = yaml.safe_load(Path(path).read_text())
     return Catalogue(
+        plan={
+            style: {k: (float(lo), float(hi)) for k, (lo, hi) in ranges.items()}
+            for style, ranges in data["plan"].items()
+        },
         furniture={
             style: {room: tuple(_item(e) for e in items) for room, items in rooms.items()}
             for style, rooms in data["furniture"].items()
@@ -121,16 +127,17 @@ def _split(rng: np.random.Generator, total: float, widths: list[tuple[float, flo
     return cuts
 
 
+def _bands(rng: np.random.Generator, style: str) -> tuple[float, float, float, float]:
+    """(width W, depth H, corridor's south edge ys, its north edge yc) of a plan, metres: a south
+    band of rooms, a corridor and a north band with depths drawn from the catalogue's ranges."""
+    ranges = load_catalogue().plan[style]
+    W, south_d, corr_w, north_d = (_u(rng, *ranges[k], 2) for k in ("width", "south", "corridor", "north"))
+    return W, round(south_d + corr_w + north_d, 2), south_d, round(south_d + corr_w, 2)
+
+
 def _plan_home(rng: np.random.Generator) -> tuple[float, float, list[_Room], float, float]:
-    W, south_d, corr_w, north_d = (
-        _u(rng, 10.0, 12.0, 2),
-        _u(rng, 3.8, 4.6, 2),
-        _u(rng, 1.3, 1.6, 2),
-        _u(rng, 3.4, 4.0, 2),
-    )
-    H = round(south_d + corr_w + north_d, 2)
+    W, H, ys, yc = _bands(rng, "home")
     W = min(W, round(118.0 / H, 2))
-    ys, yc = south_d, round(south_d + corr_w, 2)
     xk = round(W * _u(rng, 0.55, 0.65), 2)
     rooms = [_Room("living", "living", 0, 0, xk, ys, []), _Room("kitchen", "kitchen", xk, 0, W, ys, [])]
     if rng.random() < 0.5:
@@ -151,14 +158,7 @@ def _plan_home(rng: np.random.Generator) -> tuple[float, float, list[_Room], flo
 
 
 def _plan_hospital(rng: np.random.Generator) -> tuple[float, float, list[_Room], float, float]:
-    W, south_d, corr_w, north_d = (
-        _u(rng, 17.0, 22.0, 2),
-        _u(rng, 3.8, 4.4, 2),
-        _u(rng, 2.0, 2.4, 2),
-        _u(rng, 3.8, 4.4, 2),
-    )
-    H = round(south_d + corr_w + north_d, 2)
-    ys, yc = south_d, round(south_d + corr_w, 2)
+    W, H, ys, yc = _bands(rng, "hospital")
     rooms: list[_Room] = []
     for band, (y0, y1) in (("s", (0.0, ys)), ("n", (yc, H))):
         n = max(3, int(W // 4.6))
