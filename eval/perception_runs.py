@@ -42,26 +42,47 @@ from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import BACKBONES, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
+from vgpnav_env.perception.retrieval import nearby_cameras
 from vgpnav_env.runs import load_build, load_run_depth
 
 logger = logging.getLogger(__name__)
 
-#: (translation metres, rotation degrees) thresholds of the recall metrics.
+#: (translation metres, rotation degrees) thresholds of the recall metrics (DESIGN.md "Metrics").
 RECALL_THRESHOLDS = {
     "recall_5cm_5deg": (0.05, 5.0),
-    "recall_10cm_10deg": (0.10, 10.0),
     "recall_25cm_2deg": (0.25, 2.0),
+    "recall_50cm_5deg": (0.50, 5.0),
 }
+#: A localized frame farther off than this (metres, degrees) is a gross error.
+GROSS_ERROR = (0.5, 10.0)
+#: Retrieval found the place when a chosen reference lies within (metres, degrees) of the true pose.
+RETRIEVAL_HIT = (1.0, 45.0)
 
 
-def add_scene_arguments(parser: argparse.ArgumentParser, *, queries: int | None = 50) -> None:
-    """``SCENE``, ``--build``, ``--size``, ``--seed``, ``--texture``, ``--out``, ``--queries``."""
+def add_scene_arguments(
+    parser: argparse.ArgumentParser, *, queries: int | None = 50, several: bool = False
+) -> None:
+    """``SCENE`` (``several``: one or more, ``args.scene`` is then a list), ``--build``, ``--size``,
+    ``--seed``, ``--texture``, ``--out``, ``--queries``."""
     from vgpnav_env.arguments import seed_arg, size_arg
 
-    parser.add_argument("scene", help="built-in scene name or a scene spec file (ignored with --build)")
-    parser.add_argument(
-        "--build", type=Path, help="an existing build directory (default: build or reuse one)"
-    )
+    what = "built-in scene name (home, hospital, home:SEED, hospital:SEED) or a scene spec file"
+    if several:
+        parser.add_argument("scene", nargs="+", help=f"one or more: {what}; ignored with --build")
+    else:
+        parser.add_argument("scene", help=f"{what} (ignored with --build)")
+    if several:
+        parser.add_argument(
+            "--build",
+            type=Path,
+            nargs="+",
+            metavar="DIR",
+            help="existing build directories, one per scene in order (default: build or reuse them)",
+        )
+    else:
+        parser.add_argument(
+            "--build", type=Path, help="an existing build directory (default: build or reuse one)"
+        )
     parser.add_argument(
         "--size", type=size_arg, default=(320, 240), metavar="WxH", help="image size (default 320x240)"
     )
@@ -120,14 +141,17 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--k", type=int, default=10, help="number of references (default 10)")
 
 
-def resolve_build(args: argparse.Namespace) -> Path:
-    """The build directory: ``--build`` or the (possibly new) default build of ``SCENE``."""
-    if args.build is not None:
-        return Path(args.build)
+def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Path | None = None) -> Path:
+    """The build directory: ``build`` (default ``--build``) or the (possibly new) default build of
+    ``scene`` (default ``SCENE``)."""
+    build = args.build if build is None else build
+    if build is not None:
+        return Path(build)
     from vgpnav_env.build import build_runs, default_build_dir
 
-    out = default_build_dir(args.scene, tuple(args.size), args.seed, args.texture)
-    build_runs(args.scene, out, size=tuple(args.size), seed=args.seed, texture=args.texture, progress=False)
+    scene = args.scene if scene is None else scene
+    out = default_build_dir(scene, tuple(args.size), args.seed, args.texture)
+    build_runs(scene, out, size=tuple(args.size), seed=args.seed, texture=args.texture, progress=False)
     return out
 
 
@@ -163,7 +187,14 @@ def accuracy_completeness(
 
 @dataclass
 class FrameRecord:
-    """One query frame's outcome (errors nan when lost)."""
+    """One query frame's outcome (errors nan when lost).
+
+    ``translation_m`` / ``rotation_deg``: error of the localized pose; ``candidate_*``: error of the
+    pose the pipeline estimated before it rejected it (lost frames; equal to the errors above
+    when localized, nan when no pose was estimated), to tell right rejections from wrong ones.
+    ``retrieval_hit``: one of the ``retrieved`` database indices lies within
+    :data:`RETRIEVAL_HIT` of the true pose; ``references``: the indices the pose came from.
+    """
 
     frame: int
     status: str
@@ -177,6 +208,23 @@ class FrameRecord:
     n_confident_pairs: int
     n_points: int
     timings: dict[str, float] = field(default_factory=dict)
+    detail: str = ""
+    candidate_translation_m: float = float("nan")
+    candidate_rotation_deg: float = float("nan")
+    retrieval_hit: bool = False
+    retrieved: list[int] = field(default_factory=list)
+    references: list[int] = field(default_factory=list)
+
+    @property
+    def gross(self) -> bool:
+        """Localized and more than :data:`GROSS_ERROR` off."""
+        return self.status == "localized" and is_gross(self.translation_m, self.rotation_deg)
+
+
+def is_gross(translation_m, rotation_deg):
+    """Whether errors (metres, degrees; scalars or arrays) exceed :data:`GROSS_ERROR` (nan: False)."""
+    t, r = np.nan_to_num(translation_m, nan=0.0), np.nan_to_num(rotation_deg, nan=0.0)
+    return (t > GROSS_ERROR[0]) | (r > GROSS_ERROR[1])
 
 
 @dataclass(frozen=True)
@@ -199,12 +247,21 @@ class QueryRun:
     seed: int = 0
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace, *, scale: bool = True) -> QueryRun:
+    def from_args(
+        cls,
+        args: argparse.Namespace,
+        *,
+        scale: bool = True,
+        scene: str | None = None,
+        build: Path | None = None,
+    ) -> QueryRun:
         """The run the arguments of :func:`add_scene_arguments` + :func:`add_pipeline_arguments` ask
-        for (bad arguments fail before the scene is built)."""
+        for, on ``scene`` / ``build`` (default ``SCENE`` / ``--build``); bad arguments fail before
+        the scene is built."""
         options = backbone_options(args)
         config = config_from_args(args, scale=scale)
-        return cls(resolve_build(args), args.backbone, options, config, args.queries, args.seed)
+        build_dir = resolve_build(args, scene, build)
+        return cls(build_dir, args.backbone, options, config, args.queries, args.seed)
 
     def settings(self) -> dict[str, Any]:
         """The report's settings: build, backbone and the ablation switches."""
@@ -260,7 +317,8 @@ def perceive_queries(
         T = query.poses[i]
         in_range = np.isfinite(depth[i]) & (depth[i] > 0) & (depth[i] <= max_depth)
         surface = query.camera.backproject_world(depth[i], T, in_range)
-        yield QueryFrame(_record(int(i), result, T, surface, rng, max_points), result, T, surface)
+        record = _record(int(i), result, T, surface, rng, max_points, db.poses)
+        yield QueryFrame(record, result, T, surface)
 
 
 def query_records(run: QueryRun, **kwargs: Any) -> list[FrameRecord]:
@@ -268,13 +326,34 @@ def query_records(run: QueryRun, **kwargs: Any) -> list[FrameRecord]:
     return [frame.record for frame in perceive_queries(run, **kwargs)]
 
 
+def pose_errors(T_est: NDArray[np.float64] | None, T_true: NDArray[np.float64]) -> tuple[float, float]:
+    """(translation metres, rotation degrees) of ``T_est`` against ``T_true`` (nan when None)."""
+    if T_est is None:
+        return float("nan"), float("nan")
+    dt = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+    return dt, float(np.degrees(rotation_angle(T_est[:3, :3], T_true[:3, :3])))
+
+
+def retrieval_hit(refs: NDArray[np.int64], T_w: NDArray[np.float64], T_true: NDArray[np.float64]) -> bool:
+    """Whether a database camera ``T_w[refs]`` lies within :data:`RETRIEVAL_HIT` of ``T_true``."""
+    if len(refs) == 0:
+        return False
+    return len(nearby_cameras(T_w[refs], T_true, *RETRIEVAL_HIT).index) > 0
+
+
 def _record(
-    i: int, result: PerceptionResult, T: NDArray[np.float64], gt: NDArray[np.float64], rng, max_points: int
+    i: int,
+    result: PerceptionResult,
+    T: NDArray[np.float64],
+    gt: NDArray[np.float64],
+    rng,
+    max_points: int,
+    T_w: NDArray[np.float64],
 ) -> FrameRecord:
     nan = float("nan")
+    candidate = pose_errors(result.T_wc, T)
     if result.localized:
-        dt = float(np.linalg.norm(result.T_wc[:3, 3] - T[:3, 3]))
-        dr = float(np.degrees(rotation_angle(result.T_wc[:3, :3], T[:3, :3])))
+        dt, dr = candidate
         acc, comp = accuracy_completeness(result.points_w.astype(np.float64), gt, rng, max_points)
     else:
         dt = dr = acc = comp = nan
@@ -292,40 +371,76 @@ def _record(
         n_points=len(result.points_w),
         timings=dict(result.timings)
         | {f"backbone.{k}": v for k, v in (result.backbone.timings if result.backbone else {}).items()},
+        detail=result.detail,
+        candidate_translation_m=candidate[0],
+        candidate_rotation_deg=candidate[1],
+        retrieval_hit=retrieval_hit(result.retrieved, T_w, T),
+        retrieved=[int(j) for j in result.retrieved],
+        references=[int(j) for j in result.references],
     )
 
 
+def _stats(values: NDArray[np.float64]) -> tuple[float, float]:
+    """(median, mean) of the finite values (nan, nan when none)."""
+    v = values[np.isfinite(values)]
+    return (float(np.median(v)), float(np.mean(v))) if len(v) else (float("nan"), float("nan"))
+
+
 def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
-    """Median errors over localized frames; recalls over all frames (lost = failure)."""
+    """Localization metrics of a query run (DESIGN.md "Metrics").
+
+    Over all queries (a lost query is a failure): the recalls of :data:`RECALL_THRESHOLDS`,
+    ``lost_rate``, ``lost_by_reason`` and ``retrieval_recall``. Over localized queries: median
+    and mean translation / rotation errors, ``n_gross`` and ``gross_rate`` (:data:`GROSS_ERROR`).
+    """
+    n = len(records)
     t = np.array([r.translation_m for r in records], float)
     rdeg = np.array([r.rotation_deg for r in records], float)
-    ok = np.isfinite(t)
+    ok = np.array([r.status == "localized" for r in records], bool)
+    lost_by_reason: dict[str, int] = {}
+    for r in records:
+        if r.status != "localized":
+            lost_by_reason[r.reason] = lost_by_reason.get(r.reason, 0) + 1
+    median_t, mean_t = _stats(t[ok])
+    median_r, mean_r = _stats(rdeg[ok])
+    n_gross = int(is_gross(t[ok], rdeg[ok]).sum())
     out: dict[str, Any] = {
-        "median_translation_m": float(np.median(t[ok])) if ok.any() else float("nan"),
-        "median_rotation_deg": float(np.median(rdeg[ok])) if ok.any() else float("nan"),
-        "n_queries": len(records),
-        "n_lost": int((~ok).sum()),
+        "n_queries": n,
+        "n_localized": int(ok.sum()),
+        "n_lost": int(n - ok.sum()),
+        "lost_rate": float((n - ok.sum()) / n) if n else float("nan"),
+        "lost_by_reason": dict(sorted(lost_by_reason.items())),
+        "n_gross": n_gross,
+        "gross_rate": float(n_gross / ok.sum()) if ok.any() else float("nan"),
+        "median_translation_m": median_t,
+        "mean_translation_m": mean_t,
+        "median_rotation_deg": median_r,
+        "mean_rotation_deg": mean_r,
+        "retrieval_recall": float(np.mean([r.retrieval_hit for r in records])) if n else float("nan"),
     }
     for key, (tm, deg) in RECALL_THRESHOLDS.items():
         hit = ok & (np.nan_to_num(t, nan=np.inf) <= tm) & (np.nan_to_num(rdeg, nan=np.inf) <= deg)
-        out[key] = float(hit.mean()) if len(records) else float("nan")
+        out[key] = float(hit.mean()) if n else float("nan")
     return out
 
 
 def perception_metrics(records: list[FrameRecord]) -> dict[str, Any]:
-    """Acc / Comp / Overall averaged over frames with points; lost frames are counted apart."""
+    """Acc / Comp / Overall (metres): mean (``acc_m``, ...) and median (``acc_median_m``, ...) over
+    the localized frames with points (``n_frames``); Overall per frame = (Acc + Comp) / 2. Lost
+    frames have no points and are counted apart (``n_lost``, ``lost_rate`` of all queries)."""
     acc = np.array([r.acc_m for r in records], float)
     comp = np.array([r.comp_m for r in records], float)
     ok = np.isfinite(acc) & np.isfinite(comp)
-    a = float(acc[ok].mean()) if ok.any() else float("nan")
-    c = float(comp[ok].mean()) if ok.any() else float("nan")
-    return {
-        "acc_m": a,
-        "comp_m": c,
-        "overall_m": 0.5 * (a + c),
+    out: dict[str, Any] = {}
+    for name, values in (("acc", acc), ("comp", comp), ("overall", 0.5 * (acc + comp))):
+        median, mean = _stats(values[ok])
+        out |= {f"{name}_m": mean, f"{name}_median_m": median}
+    n_lost = sum(r.status != "localized" for r in records)
+    return out | {
         "n_frames": int(ok.sum()),
         "n_queries": len(records),
-        "n_lost": sum(r.status == "lost" for r in records),
+        "n_lost": n_lost,
+        "lost_rate": n_lost / len(records) if records else float("nan"),
     }
 
 

@@ -11,7 +11,13 @@ import torch
 from tiny_build import make_tiny_build
 
 from vgpnav_env.cli import main
-from vgpnav_env.eval.perception_runs import accuracy_completeness, query_subset
+from vgpnav_env.eval.perception_runs import (
+    FrameRecord,
+    accuracy_completeness,
+    perception_metrics,
+    query_subset,
+)
+from vgpnav_env.eval.query_reports import localization_summary, worst_frames
 
 
 @pytest.fixture(scope="module")
@@ -30,13 +36,70 @@ def test_localization_report(build: Path, tmp_path: Path) -> None:
                  "--queries", "3", "--out", str(out)])  # fmt: skip
     assert code == 0
     r = report(out)
-    for key in ("median_translation_m", "median_rotation_deg", "recall_5cm_5deg", "recall_10cm_10deg",
-                "recall_25cm_2deg", "n_queries", "n_lost", "records"):  # fmt: skip
+    for key in ("median_translation_m", "mean_translation_m", "median_rotation_deg", "mean_rotation_deg",
+                "recall_5cm_5deg", "recall_25cm_2deg", "recall_50cm_5deg", "n_gross", "gross_rate",
+                "lost_rate", "lost_by_reason", "retrieval_recall", "cpu_s_per_frame", "n_queries",
+                "n_lost", "records"):  # fmt: skip
         assert key in r
     assert r["n_queries"] == 3 and len(r["records"]) == 3 and r["n_lost"] == 0
-    # The simulated backbone without noise is exact.
-    assert r["median_translation_m"] < 0.01 and r["recall_5cm_5deg"] == 1.0
-    assert (out / "errors.png").is_file()
+    # The simulated backbone without noise is exact; the tiny database covers every query.
+    assert r["median_translation_m"] < 0.01 and r["recall_5cm_5deg"] == 1.0 and r["n_gross"] == 0
+    assert r["retrieval_recall"] == 1.0 and r["cpu_s_per_frame"] > 0
+    assert (out / "errors.png").is_file() and (out / "worst.png").is_file()
+    assert "## Per-frame results" in (out / "report.md").read_text()
+
+
+def test_several_scenes_give_one_table_and_one_report_each(build: Path, tmp_path: Path) -> None:
+    out = tmp_path / "multi"
+    args = ["eval", "perception", "tiny", "tiny:b", "--build", str(build), str(build), "--backbone",
+            "simulated", "--queries", "2", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    summary = report(out)
+    assert list(summary["scenes"]) == ["tiny", "tiny:b"]
+    for scene, slug in (("tiny", "tiny"), ("tiny:b", "tiny-b")):
+        per_scene = report(out / slug)
+        row = summary["scenes"][scene]
+        assert row["acc_m"] == per_scene["acc_m"] and row["gross_rate"] == per_scene["gross_rate"] == 0.0
+        assert per_scene["n_queries"] == 2 and "acc_median_m" in per_scene
+    md = (out / "report.md").read_text()
+    assert "| tiny:b |" in md and "tiny-b/report.md" in md
+
+
+def test_mismatched_builds_are_refused_in_one_line(
+    build: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "refused"
+    args = ["eval", "localization", "tiny", "tiny:b", "--build", str(build), "--out", str(out)]
+    assert main(args) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "one directory per scene" in lines[0] and not out.exists()
+
+
+def _frame(i: int, t: float, r: float, reason: str = "", hit: bool = True) -> FrameRecord:
+    status, acc = ("lost", float("nan")) if reason else ("localized", 0.05)
+    return FrameRecord(i, status, reason, t, r, acc, acc - 0.01, "ground", 10, 5, 1000, {"cpu": 0.5},
+                       retrieval_hit=hit)  # fmt: skip
+
+
+def test_metrics_expose_a_planted_gross_error() -> None:
+    nan = float("nan")
+    records = [_frame(0, 0.01, 0.5), _frame(1, 0.03, 1.0), _frame(2, 0.2, 1.0),
+               _frame(3, 2.0, 3.0, hit=False), _frame(4, 0.02, 12.0),
+               _frame(5, nan, nan, "no consensus", hit=False)]  # fmt: skip
+    m = localization_summary(records)
+    # Frames 3 (2 m) and 4 (12 deg) are gross: 2 of the 5 localized.
+    assert m["n_gross"] == 2 and m["gross_rate"] == pytest.approx(0.4)
+    assert m["recall_5cm_5deg"] == pytest.approx(2 / 6) and m["recall_25cm_2deg"] == pytest.approx(3 / 6)
+    assert m["recall_50cm_5deg"] == pytest.approx(3 / 6)
+    assert m["n_lost"] == 1 and m["lost_rate"] == pytest.approx(1 / 6)
+    assert m["lost_by_reason"] == {"no consensus": 1}
+    assert m["median_translation_m"] == pytest.approx(0.03)
+    assert m["mean_translation_m"] == pytest.approx(0.452)
+    assert m["retrieval_recall"] == pytest.approx(4 / 6) and m["cpu_s_per_frame"] == pytest.approx(0.5)
+    assert worst_frames(records, 2) == [records[3], records[4]]
+    p = perception_metrics(records)
+    assert p["n_frames"] == 5 and p["n_lost"] == 1 and p["acc_m"] == pytest.approx(0.05)
+    assert p["overall_median_m"] == pytest.approx(0.045)
 
 
 def test_perception_report_and_scale_ablation(build: Path, tmp_path: Path) -> None:

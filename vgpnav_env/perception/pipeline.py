@@ -128,6 +128,8 @@ class PerceptionResult:
     ``timings``: wall seconds per stage (:data:`TIMING_KEYS`) and ``cpu``: the process's CPU
     seconds for the whole call (all threads; less sensitive than wall time to other processes
     sharing the cores). ``detail`` says why a frame was lost, or which second chance placed it.
+    ``retrieved``: the references retrieval chose (the first round; ``references`` may come from
+    a second round).
     """
 
     status: str
@@ -145,6 +147,7 @@ class PerceptionResult:
     backbone: BackboneOutput | None = None
     n_confident_pairs: int = 0
     detail: str = ""
+    retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def localized(self) -> bool:
@@ -154,7 +157,8 @@ class PerceptionResult:
 @dataclass(frozen=True)
 class _Localization:
     """Stages 1-3 of one frame: references, backbone output and motion-averaging result (the pose
-    in W, its translation at the rays' scale); ``reason`` is a lost reason, "" when localized."""
+    in W, its translation at the rays' scale); ``reason`` is a lost reason, "" when localized;
+    ``retrieved``: the first round's references."""
 
     references: NDArray[np.int64]
     backbone: BackboneOutput | None = None
@@ -162,6 +166,7 @@ class _Localization:
     n_confident_pairs: int = 0
     reason: str = ""
     detail: str = ""
+    retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def ok(self) -> bool:
@@ -310,6 +315,7 @@ class Perceiver:
             backbone=loc.backbone,
             n_confident_pairs=loc.n_confident_pairs,
             detail=loc.detail,
+            retrieved=loc.retrieved,
         )
 
     def _localize(
@@ -327,6 +333,7 @@ class Perceiver:
             refs = select_references(sims, db.poses, cfg.retrieval)
         if len(refs) == 0:
             return _Localization(refs, reason="too few matches", detail="empty database")
+        retrieved = refs
         out, motion = self._round(rgb, refs, privileged, clock)
         if cfg.averaging.method == "weighted":
             with clock.stage("retrieval"):
@@ -357,11 +364,11 @@ class Perceiver:
         n_conf = int((out.confidence > 0).sum())
         if n_conf == 0:
             detail = f"no reference pair passed the backbone (matches {out.n_matches.tolist()})"
-            return _Localization(refs, out, reason="too few matches", detail=detail)
+            return _Localization(refs, out, reason="too few matches", detail=detail, retrieved=retrieved)
         if not motion.ok:
             reason = "too few matches" if motion.reason == "too few references" else "no consensus"
-            return _Localization(refs, out, motion, n_conf, reason, motion.reason)
-        return _Localization(refs, out, motion, n_conf)
+            return _Localization(refs, out, motion, n_conf, reason, motion.reason, retrieved)
+        return _Localization(refs, out, motion, n_conf, retrieved=retrieved)
 
     def _round(
         self, rgb: NDArray[np.uint8], refs: NDArray[np.int64], privileged: Privileged | None, clock: _Clock
@@ -514,6 +521,7 @@ def _lost(loc: _Localization, clock: _Clock, **kw) -> PerceptionResult:
         backbone=loc.backbone,
         n_confident_pairs=loc.n_confident_pairs,
         detail=loc.detail,
+        retrieved=loc.retrieved,
         **kw,
     )
 

@@ -1,0 +1,229 @@
+"""Reports of the query-frame protocols (localization, perception), for one scene or several.
+
+``vgpnav eval localization|perception SCENE [SCENE ...]`` runs each scene's query run (one
+:class:`~vgpnav_env.eval.perception_runs.QueryRun` per scene, same settings) and writes
+
+- one scene: ``OUT/report.json`` + ``OUT/report.md``;
+- several: one report per scene in ``OUT/<scene>/`` (``home:1`` -> ``home-1``) and
+  ``OUT/report.json`` + ``report.md`` with one table across the scenes (:func:`run_scenes`).
+
+Every scene report holds the honest metrics (DESIGN.md "Metrics"): recalls, ``n_gross`` /
+``gross_rate``, lost frames by reason, retrieval recall, median and mean errors, CPU seconds per
+frame, a per-frame table, the error CDF (``errors.png``) and the worst frames, each query beside
+the references its pose came from (``worst.png``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from vgpnav_env.eval.perception_runs import (
+    FrameRecord,
+    QueryRun,
+    localization_metrics,
+    pose_errors,
+)
+from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.runs import load_build
+
+#: One scene's evaluation: (metrics incl. ``records``, figures by file name) of a query run.
+Evaluate = Callable[[QueryRun], tuple[dict[str, Any], dict[str, Figure]]]
+
+
+def time_metrics(records: Sequence[FrameRecord]) -> dict[str, float]:
+    """Mean and median CPU seconds per frame (process CPU time of ``perceive``, all threads)."""
+    cpu = np.array([r.timings.get("cpu", np.nan) for r in records], float)
+    cpu = cpu[np.isfinite(cpu)]
+    if not len(cpu):
+        return {"cpu_s_per_frame": float("nan"), "cpu_s_per_frame_median": float("nan")}
+    return {"cpu_s_per_frame": float(cpu.mean()), "cpu_s_per_frame_median": float(np.median(cpu))}
+
+
+def error_cdf_figure(records: Sequence[FrameRecord], title: str = "") -> Figure:
+    """Cumulative fraction of ALL queries (lost never reach 1) below a translation / rotation error;
+    dashed lines mark the recall and gross-error thresholds."""
+    fig = Figure(figsize=(9, 3.4))
+    axes = fig.subplots(1, 2)
+    n = max(len(records), 1)
+    for ax, key, unit, marks in (
+        (axes[0], "translation_m", "m", (0.05, 0.25, 0.5)),
+        (axes[1], "rotation_deg", "deg", (2.0, 5.0, 10.0)),
+    ):
+        e = np.sort(np.array([getattr(r, key) for r in records], float))
+        e = e[np.isfinite(e)]
+        if len(e):
+            ax.step(np.maximum(e, 1e-4), np.arange(1, len(e) + 1) / n, where="post")
+            ax.set_xscale("log")
+        for m in marks:
+            ax.axvline(m, color="grey", lw=0.6, ls="--")
+        ax.set_xlabel(f"{key.split('_')[0]} error ({unit})")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("fraction of queries")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def worst_frames(records: Sequence[FrameRecord], n: int = 6) -> list[FrameRecord]:
+    """The ``n`` localized frames farthest off (error relative to the gross-error thresholds)."""
+    localized = [r for r in records if r.status == "localized"]
+    return sorted(localized, key=lambda r: -max(r.translation_m / 0.5, r.rotation_deg / 10.0))[:n]
+
+
+def worst_frames_figure(
+    build_dir: Path, records: Sequence[FrameRecord], n: int = 6, n_refs: int = 5
+) -> Figure:
+    """The worst frames (:func:`worst_frames`), one row each: the query, then up to ``n_refs`` of the
+    references its pose came from, each titled with its distance / angle to the TRUE query pose."""
+    rows = worst_frames(records, n)
+    fig = Figure(figsize=(2.0 * (n_refs + 1), 1.75 * max(len(rows), 1)))
+    if not rows:
+        fig.text(0.5, 0.5, "no localized frame", ha="center")
+        return fig
+    build = load_build(build_dir)
+    axes = np.atleast_2d(fig.subplots(len(rows), n_refs + 1))
+    for row, r in zip(axes, rows, strict=True):
+        T_true = build.query.poses[r.frame]
+        row[0].imshow(build.query.images[r.frame])
+        hit = "" if r.retrieval_hit else ", retrieval missed"
+        row[0].set_title(f"q{r.frame}: {r.translation_m:.2f} m / {r.rotation_deg:.0f}°{hit}", fontsize=6)
+        for ax, j in zip(row[1:], [*r.references, *([None] * n_refs)], strict=False):
+            if j is not None:
+                ax.imshow(build.database.images[j])
+                dt, dr = pose_errors(build.database.poses[j], T_true)
+                ax.set_title(f"ref {j}: {dt:.1f} m / {dr:.0f}°", fontsize=6)
+        for ax in row:
+            ax.set_axis_off()
+    fig.tight_layout()
+    return fig
+
+
+def frame_table(records: Sequence[FrameRecord]) -> str:
+    """Per-frame Markdown table (folded): status, errors, Acc / Comp, retrieval, pairs, detail."""
+    rows = [
+        (
+            r.frame,
+            r.status + (" (gross)" if r.gross else ""),
+            r.reason,
+            r.translation_m,
+            r.rotation_deg,
+            r.acc_m,
+            r.comp_m,
+            "yes" if r.retrieval_hit else "no",
+            r.n_confident_pairs,
+            r.timings.get("cpu"),
+            r.detail[:80],
+        )
+        for r in records
+    ]
+    header = ["frame", "status", "reason", "t (m)", "r (deg)", "Acc (m)", "Comp (m)", "retrieval hit",
+              "pairs", "CPU s", "detail"]  # fmt: skip
+    return (
+        "## Per-frame results\n\n<details><summary>all frames</summary>\n\n"
+        + markdown_table(header, rows)
+        + "\n\n</details>"
+    )
+
+
+def lost_table(metrics: dict[str, Any]) -> str:
+    lost = metrics["lost_by_reason"]
+    if not lost:
+        return "No query was lost."
+    return "## Lost queries by reason\n\n" + markdown_table(["reason", "count"], sorted(lost.items()))
+
+
+def localization_summary(records: Sequence[FrameRecord]) -> dict[str, Any]:
+    """:func:`localization_metrics` + :func:`time_metrics`: the numbers every query report shows."""
+    return {**localization_metrics(list(records)), **time_metrics(records)}
+
+
+def scene_report(
+    out: Path,
+    title: str,
+    scene: str,
+    run: QueryRun,
+    metrics: dict[str, Any],
+    sections: Sequence[str],
+    figures: dict[str, Figure],
+) -> None:
+    """Write one scene's report: metrics (with ``records``), settings, lost reasons, the given
+    sections, the per-frame table and the figures plus the error CDF and the worst frames."""
+    records = [FrameRecord(**r) for r in metrics["records"]]
+    settings = {"scene": scene, **run.settings()}
+    figures = {
+        **figures,
+        "errors.png": error_cdf_figure(records, f"{scene}: {run.backbone}, k = {run.config.retrieval.k}"),
+        "worst.png": worst_frames_figure(run.build_dir, records),
+    }
+    parts = [
+        "## Settings\n\n" + markdown_table(["setting", "value"], list(settings.items())),
+        lost_table(metrics),
+        *sections,
+        "Recalls and `retrieval_recall` count every query (a lost one fails); median / mean errors "
+        "and `gross_rate` (> 0.5 m or 10 deg) are over localized queries. `worst.png`: the worst "
+        "localized frames, each query beside the references its pose came from (titles: distance "
+        "and angle to the true query pose).",
+        frame_table(records),
+    ]
+    write_report(out, f"{title}: {scene}", {**metrics, "settings": settings}, parts, figures)
+
+
+def run_scenes(
+    args: argparse.Namespace,
+    title: str,
+    evaluate: Evaluate,
+    columns: Sequence[str],
+    sections: Callable[[dict[str, Any]], list[str]] = lambda metrics: [],
+    *,
+    scale: bool = True,
+) -> int:
+    """Evaluate every scene of ``args.scene`` (a list) and write the reports (module docstring).
+
+    ``columns``: the metric keys of the table across scenes; ``sections``: extra Markdown of one
+    scene's report from its metrics. Arguments are checked and every build resolved before the
+    first scene runs."""
+    scenes = list(args.scene)
+    builds = list(args.build) if args.build is not None else [None] * len(scenes)
+    if len(builds) != len(scenes):
+        raise ValueError(f"--build needs one directory per scene: {len(scenes)} scenes, {len(builds)} builds")
+    if len(set(scenes)) != len(scenes):
+        raise ValueError(f"a scene is given twice: {' '.join(scenes)}")
+    runs = [
+        (scene, QueryRun.from_args(args, scale=scale, scene=scene, build=build))
+        for scene, build in zip(scenes, builds, strict=True)
+    ]
+    summary: dict[str, dict[str, Any]] = {}
+    for scene, run in runs:
+        out = args.out if len(runs) == 1 else args.out / re.sub(r"[^A-Za-z0-9_.-]+", "-", scene)
+        metrics, figures = evaluate(run)
+        scene_report(out, title, scene, run, metrics, sections(metrics), figures)
+        summary[scene] = {k: metrics[k] for k in columns} | {"report": str(out / "report.md")}
+    if len(runs) > 1:
+        rows = [(scene, *(m[k] for k in columns)) for scene, m in summary.items()]
+        table = markdown_table(["scene", *columns], [[_cell(v) for v in row] for row in rows])
+        settings = {k: v for k, v in runs[0][1].settings().items() if k != "build"}
+        parts = [
+            "## Settings\n\n" + markdown_table(["setting", "value"], list(settings.items())),
+            "## Scenes\n\n" + table,
+            "One report per scene: "
+            + ", ".join(f"[{s}]({Path(m['report']).parent.name}/report.md)" for s, m in summary.items()),
+        ]
+        write_report(
+            args.out, f"{title}: {len(runs)} scenes", {"scenes": summary, "settings": settings}, parts
+        )
+    return 0
+
+
+def _cell(value: Any) -> Any:
+    """A table cell: a lost-by-reason dict as ``reason: n, ...``."""
+    if isinstance(value, dict):
+        return ", ".join(f"{k}: {v}" for k, v in value.items()) or "-"
+    return value
