@@ -38,6 +38,7 @@ COLUMNS = (
     "lost_rate",
     "lost_by_reason",
     "retrieval_recall",
+    "confidence_auc",
     "median_translation_m",
     "mean_translation_m",
     "median_rotation_deg",

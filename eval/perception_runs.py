@@ -194,6 +194,8 @@ class FrameRecord:
     when localized, nan when no pose was estimated), to tell right rejections from wrong ones.
     ``retrieval_hit``: one of the ``retrieved`` database indices lies within
     :data:`RETRIEVAL_HIT` of the true pose; ``references``: the indices the pose came from.
+    ``confidence``: the verification's confidence in the pose (0 when lost);
+    ``candidate_confidence``: its confidence before any rejection (nan without a verdict).
     """
 
     frame: int
@@ -214,6 +216,8 @@ class FrameRecord:
     retrieval_hit: bool = False
     retrieved: list[int] = field(default_factory=list)
     references: list[int] = field(default_factory=list)
+    confidence: float = 0.0
+    candidate_confidence: float = float("nan")
 
     @property
     def gross(self) -> bool:
@@ -377,6 +381,8 @@ def _record(
         retrieval_hit=retrieval_hit(result.retrieved, T_w, T),
         retrieved=[int(j) for j in result.retrieved],
         references=[int(j) for j in result.references],
+        confidence=result.confidence,
+        candidate_confidence=result.verdict.score if result.verdict is not None else float("nan"),
     )
 
 
@@ -386,12 +392,33 @@ def _stats(values: NDArray[np.float64]) -> tuple[float, float]:
     return (float(np.median(v)), float(np.mean(v))) if len(v) else (float("nan"), float("nan"))
 
 
+def confidence_roc(records: list[FrameRecord]) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """ROC of the verification's confidence as a test of "this pose is right" (false- and
+    true-positive rates (n,), AUC; nan when a class is empty): over the frames whose pose was
+    verified (accepted or not), right = not a gross error (:data:`GROSS_ERROR`), wrong = gross,
+    scored by ``candidate_confidence``."""
+    scored = [r for r in records if np.isfinite(r.candidate_confidence)]
+    score = np.array([r.candidate_confidence for r in scored], float)
+    wrong = np.array([is_gross(r.candidate_translation_m, r.candidate_rotation_deg) for r in scored], bool)
+    n_right, n_wrong = int((~wrong).sum()), int(wrong.sum())
+    if n_right == 0 or n_wrong == 0:
+        return np.zeros(0), np.zeros(0), float("nan")
+    thresholds = np.r_[np.inf, np.unique(score)[::-1]]
+    tpr = np.array([(score[~wrong] >= t).mean() for t in thresholds])
+    fpr = np.array([(score[wrong] >= t).mean() for t in thresholds])
+    right, bad = score[~wrong][:, None], score[wrong][None, :]
+    auc = float(((right > bad).sum() + 0.5 * (right == bad).sum()) / (n_right * n_wrong))
+    return fpr, tpr, auc
+
+
 def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
     """Localization metrics of a query run (DESIGN.md "Metrics").
 
     Over all queries (a lost query is a failure): the recalls of :data:`RECALL_THRESHOLDS`,
     ``lost_rate``, ``lost_by_reason`` and ``retrieval_recall``. Over localized queries: median
     and mean translation / rotation errors, ``n_gross`` and ``gross_rate`` (:data:`GROSS_ERROR`).
+    ``confidence_auc``: :func:`confidence_roc`; ``n_rejected_right``: lost frames whose rejected
+    pose was right (within 0.25 m and 2 deg), the price of the verification.
     """
     n = len(records)
     t = np.array([r.translation_m for r in records], float)
@@ -417,6 +444,11 @@ def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
         "median_rotation_deg": median_r,
         "mean_rotation_deg": mean_r,
         "retrieval_recall": float(np.mean([r.retrieval_hit for r in records])) if n else float("nan"),
+        "confidence_auc": confidence_roc(records)[2],
+        "n_rejected_right": sum(
+            r.status != "localized" and r.candidate_translation_m <= 0.25 and r.candidate_rotation_deg <= 2.0
+            for r in records
+        ),
     }
     for key, (tm, deg) in RECALL_THRESHOLDS.items():
         hit = ok & (np.nan_to_num(t, nan=np.inf) <= tm) & (np.nan_to_num(rdeg, nan=np.inf) <= deg)

@@ -27,6 +27,7 @@ from matplotlib.figure import Figure
 from vgpnav_env.eval.perception_runs import (
     FrameRecord,
     QueryRun,
+    confidence_roc,
     localization_metrics,
     pose_errors,
 )
@@ -68,6 +69,25 @@ def error_cdf_figure(records: Sequence[FrameRecord], title: str = "") -> Figure:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("fraction of queries")
     fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def confidence_figure(records: Sequence[FrameRecord], title: str = "") -> Figure:
+    """ROC of the per-frame confidence (right pose vs gross error, :func:`confidence_roc`)."""
+    fpr, tpr, auc = confidence_roc(list(records))
+    fig = Figure(figsize=(4.2, 4.0))
+    ax = fig.subplots()
+    if len(fpr):
+        ax.step(fpr, tpr, where="post", label=f"AUC {auc:.3f}")
+        ax.legend(loc="lower right")
+    else:
+        ax.text(0.5, 0.5, "no gross error (or no right pose) to separate", ha="center", fontsize=8)
+    ax.plot([0, 1], [0, 1], color="grey", lw=0.6, ls="--")
+    ax.set_xlabel("gross errors accepted (false-positive rate)")
+    ax.set_ylabel("right poses accepted (true-positive rate)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig
 
@@ -119,13 +139,14 @@ def frame_table(records: Sequence[FrameRecord]) -> str:
             r.comp_m,
             "yes" if r.retrieval_hit else "no",
             r.n_confident_pairs,
+            r.candidate_confidence,
             r.timings.get("cpu"),
             r.detail[:80],
         )
         for r in records
     ]
     header = ["frame", "status", "reason", "t (m)", "r (deg)", "Acc (m)", "Comp (m)", "retrieval hit",
-              "pairs", "CPU s", "detail"]  # fmt: skip
+              "pairs", "confidence", "CPU s", "detail"]  # fmt: skip
     return (
         "## Per-frame results\n\n<details><summary>all frames</summary>\n\n"
         + markdown_table(header, rows)
@@ -162,6 +183,7 @@ def scene_report(
         **figures,
         "errors.png": error_cdf_figure(records, f"{scene}: {run.backbone}, k = {run.config.retrieval.k}"),
         "worst.png": worst_frames_figure(run.build_dir, records),
+        "confidence.png": confidence_figure(records, f"{scene}: confidence of the verified poses"),
     }
     parts = [
         "## Settings\n\n" + markdown_table(["setting", "value"], list(settings.items())),
@@ -170,7 +192,8 @@ def scene_report(
         "Recalls and `retrieval_recall` count every query (a lost one fails); median / mean errors "
         "and `gross_rate` (> 0.5 m or 10 deg) are over localized queries. `worst.png`: the worst "
         "localized frames, each query beside the references its pose came from (titles: distance "
-        "and angle to the true query pose).",
+        "and angle to the true query pose). `confidence.png`: ROC of the per-frame confidence of "
+        "every verified pose (kept or rejected) as a test of right (not gross) against gross.",
         frame_table(records),
     ]
     write_report(out, f"{title}: {scene}", {**metrics, "settings": settings}, parts, figures)

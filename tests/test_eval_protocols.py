@@ -16,8 +16,10 @@ from vgpnav_env.eval.perception_runs import (
     accuracy_completeness,
     perception_metrics,
     query_subset,
+    retrieval_hit,
 )
 from vgpnav_env.eval.query_reports import localization_summary, worst_frames
+from vgpnav_env.geometry import camera_pose
 
 
 @pytest.fixture(scope="module")
@@ -129,6 +131,7 @@ def test_timing_report(build: Path, tmp_path: Path) -> None:
         "backbone",
         "motion_averaging",
         "scale_recovery",
+        "verification",
         "occupancy",
         "total",
     }
@@ -221,3 +224,14 @@ def test_query_subset_and_metrics() -> None:
     acc, comp = accuracy_completeness(gt + [0.1, 0.0, 0.0], gt, rng)
     assert acc <= 0.1 + 1e-9 and comp <= 0.1 + 1e-9 and acc > 0.05
     assert np.isnan(accuracy_completeness(np.zeros((0, 3)), gt, rng)[0])
+
+
+def test_retrieval_hit_needs_a_reference_within_1m_and_45deg() -> None:
+    T = camera_pose([1.0, 1.0, 1.2], 0.0, np.deg2rad(20.0))
+    db = np.stack([
+        camera_pose([1.8, 1.0, 1.5], np.deg2rad(30.0), np.deg2rad(20.0)),  # 0.85 m, ~30 deg: a hit
+        camera_pose([2.2, 1.0, 1.5], 0.0, np.deg2rad(20.0)),  # 1.24 m
+        camera_pose([1.0, 1.0, 1.5], np.deg2rad(60.0), np.deg2rad(20.0)),  # 60 deg
+    ])  # fmt: skip
+    assert retrieval_hit(np.array([0, 1]), db, T) and not retrieval_hit(np.array([1, 2]), db, T)
+    assert not retrieval_hit(np.zeros(0, np.int64), db, T)

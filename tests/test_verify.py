@@ -1,14 +1,21 @@
-"""The pose checks of perception.verify on hand-made motion results (no rendering)."""
+"""The pose checks of perception.verify on hand-made motion results and synthetic matches (no rendering)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from vgpnav_env.geometry import camera_pose
+from vgpnav_env.geometry import PinholeCamera, camera_pose
+from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionResult
 from vgpnav_env.perception.scale_recovery import GroundAnchor, ScaleEstimate
-from vgpnav_env.perception.verify import VerifyConfig, check_height, check_scale
+from vgpnav_env.perception.verify import (
+    VerifyConfig,
+    check_height,
+    check_scale,
+    epipolar_support,
+    verify_pose,
+)
 
 
 def _motion(z: float, reason: str = "") -> MotionResult:
@@ -41,3 +48,107 @@ def test_check_scale_replaces_a_ground_scale_far_from_the_rays() -> None:
     assert check_scale(ground, 1.0, VerifyConfig(scale_check_ratio=None)) is ground
     with pytest.raises(ValueError, match="scale_check_ratio"):
         VerifyConfig(scale_check_ratio=1.0)
+
+
+# Two identical rooms: room B is room A moved 10 m along x (same furniture, same texture). The
+# query stands in room A; three references look at the same corner of each room.
+CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
+SHIFT = np.array([10.0, 0.0, 0.0])
+
+
+def _room_points(rng: np.random.Generator) -> np.ndarray:
+    """Textured points on a corner of room A: two walls and the floor (metres, W)."""
+    n = 400
+    wall_x = np.c_[np.full(n, 4.0), rng.uniform(0, 4, n), rng.uniform(0, 2.5, n)]
+    wall_y = np.c_[rng.uniform(0, 4, n), np.full(n, 4.0), rng.uniform(0, 2.5, n)]
+    floor = np.c_[rng.uniform(1, 4, n), rng.uniform(1, 4, n), np.zeros(n)]
+    return np.concatenate([wall_x, wall_y, floor])
+
+
+def _matches(T_wq: np.ndarray, T_wi: np.ndarray, points: np.ndarray, rng) -> np.ndarray:
+    """(m, 4) pixels of the points both cameras see, with 0.3 px noise."""
+    uv_q, ok_q = _project(T_wq, points)
+    uv_i, ok_i = _project(T_wi, points)
+    ok = ok_q & ok_i
+    m = np.hstack([uv_q[ok], uv_i[ok]])
+    return (m + rng.normal(0, 0.3, m.shape)).astype(np.float32)
+
+
+def _project(T_wc: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p = (points - T_wc[:3, 3]) @ T_wc[:3, :3]
+    uv = p[:, :2] / p[:, 2:3] * CAMERA.K[0, 0] + CAMERA.K[:2, 2]
+    inside = (p[:, 2] > 0.1) & (uv >= 0).all(1) & (uv[:, 0] < CAMERA.width) & (uv[:, 1] < CAMERA.height)
+    return uv, inside
+
+
+def _aliased_frame(rooms: str):
+    """(true T_wq, the same pose in room B, T_wi, backbone output) with references in ``rooms``."""
+    rng = np.random.default_rng(0)
+    points = _room_points(rng)
+    T_q = camera_pose([1.0, 1.2, 1.2], np.deg2rad(45.0), np.deg2rad(20.0))
+    refs_a = [camera_pose([x, y, 1.5], np.deg2rad(yaw), np.deg2rad(25.0)) for x, y, yaw in
+              [(0.6, 1.5, 40.0), (1.5, 0.5, 55.0), (1.2, 1.9, 35.0)]]  # fmt: skip
+    T_wi, matches = [], []
+    for room in rooms:
+        offset = SHIFT if room == "B" else 0.0
+        for T in refs_a:
+            T_i = T.copy()
+            T_i[:3, 3] += offset
+            T_wi.append(T_i)
+            # Identical rooms look identical: the query's view of A matches B's references as A's.
+            matches.append(_matches(T_q, T, points, rng))
+    k = len(T_wi)
+    out = BackboneOutput(
+        np.tile(np.eye(4), (k, 1, 1)), np.full(k, 0.5), np.array([len(m) for m in matches]),
+        np.zeros((2, 2), np.float32), np.zeros((2, 2), np.float32), "test", "none", matches=matches,
+    )  # fmt: skip
+    T_b = T_q.copy()
+    T_b[:3, 3] += SHIFT
+    return T_q, T_b, np.array(T_wi), out
+
+
+def test_identical_rooms_are_ambiguous_never_the_wrong_room() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    config = VerifyConfig()
+    for pose, rival in ((T_a, T_b), (T_b, T_a)):
+        verdict = verify_pose(pose, T_wi, out, CAMERA, config, rivals=[rival])
+        assert not verdict.ok and verdict.reason == "ambiguous", verdict.detail
+        # Each room's references support its pose in full: the rival is as strong as the pose.
+        assert verdict.rival_strength >= 0.5 * verdict.strength > 3 * config.min_support_matches
+    # Only room A's references: the right room is confirmed by all three, with high confidence.
+    T_a, T_b, T_wi, out = _aliased_frame("A")
+    right = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b])
+    assert right.ok and right.n_supporting == 3 and right.rival_strength == 0 and right.confidence > 0.8
+
+
+def test_pose_from_another_rooms_references_is_rejected() -> None:
+    # The query's matches are with room A's references; a pose in room B explains none of them.
+    T_a, T_b, T_wi, out = _aliased_frame("A")
+    wrong = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig())
+    assert not wrong.ok and wrong.reason == "unverified" and wrong.strength == 0 and wrong.confidence == 0
+    # A pose 0.5 m off in the right room explains (almost) nothing either.
+    off = T_a.copy()
+    off[:3, 3] += [0.5, -0.3, 0.0]
+    assert verify_pose(off, T_wi, out, CAMERA, VerifyConfig()).reason == "unverified"
+
+
+def test_wrong_camera_height_or_tilt_is_rejected() -> None:
+    T_a, _, T_wi, out = _aliased_frame("A")
+    config = VerifyConfig(pose_height_tolerance=0.3)
+    assert verify_pose(T_a, T_wi, out, CAMERA, config, height_error=0.1).ok
+    high = verify_pose(T_a, T_wi, out, CAMERA, config, height_error=-0.9)
+    assert high.reason == "unverified" and high.detail == "camera height off by -0.90 m"
+    rolled = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(20.0), roll=np.deg2rad(12.0))
+    assert "rolled" in verify_pose(rolled, T_wi, out, CAMERA, config).detail
+    level = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(-20.0))  # looking up
+    assert "pitched" in verify_pose(level, T_wi, out, CAMERA, config).detail
+
+
+def test_epipolar_support_counts_the_matches_a_pose_explains() -> None:
+    T_a, _, T_wi, out = _aliased_frame("A")
+    support = epipolar_support(T_a, T_wi, out.matches, CAMERA, 2.0)
+    assert (support >= 0.95 * out.n_matches).all()  # 0.3 px noise: nearly all within 2 px
+    turned = camera_pose(T_a[:3, 3], np.deg2rad(55.0), np.deg2rad(20.0))  # 10 deg of yaw off
+    assert (epipolar_support(turned, T_wi, out.matches, CAMERA, 2.0) < 0.2 * out.n_matches).all()
+    with pytest.raises(ValueError, match="match arrays"):
+        epipolar_support(T_a, T_wi[:2], out.matches, CAMERA, 2.0)

@@ -58,12 +58,16 @@ from vgpnav_env.perception.scale_recovery import (
 )
 from vgpnav_env.perception.verify import (
     PoseGate,
+    Verdict,
     VerifyConfig,
     check_height,
     check_scale,
+    reference_support,
+    rival_poses,
     round_rank,
     second_round_references,
     single_pair_fallback,
+    verify_pose,
 )
 from vgpnav_env.robot import CAMERA_HEIGHT
 
@@ -71,9 +75,26 @@ logger = logging.getLogger(__name__)
 
 #: Why a frame is lost: no reference pair passed the backbone; the references' poses disagree
 #: (rotation consensus, ray triangulation, camera height); no metric scale (no ground and no ray
-#: scale); the pose lies outside the caller's :class:`~vgpnav_env.perception.verify.PoseGate`.
-LOST_REASONS = ("too few matches", "no consensus", "no ground", "inconsistent motion")
-TIMING_KEYS = ("retrieval", "backbone", "motion_averaging", "scale_recovery", "occupancy", "total")
+#: scale); the pose lies outside the caller's :class:`~vgpnav_env.perception.verify.PoseGate`;
+#: the images do not confirm the pose (:func:`~vgpnav_env.perception.verify.verify_pose`:
+#: "unverified"), or confirm a distinct rival pose as well ("ambiguous").
+LOST_REASONS = (
+    "too few matches",
+    "no consensus",
+    "no ground",
+    "inconsistent motion",
+    "unverified",
+    "ambiguous",
+)
+TIMING_KEYS = (
+    "retrieval",
+    "backbone",
+    "motion_averaging",
+    "scale_recovery",
+    "verification",
+    "occupancy",
+    "total",
+)
 
 
 @dataclass(frozen=True)
@@ -129,7 +150,9 @@ class PerceptionResult:
     seconds for the whole call (all threads; less sensitive than wall time to other processes
     sharing the cores). ``detail`` says why a frame was lost, or which second chance placed it.
     ``retrieved``: the references retrieval chose (the first round; ``references`` may come from
-    a second round).
+    a second round). ``verdict``: what the images say about the pose (None when no pose was
+    verified) and ``confidence`` its :attr:`~vgpnav_env.perception.verify.Verdict.confidence`
+    (0 when lost): how much to trust the pose.
     """
 
     status: str
@@ -148,6 +171,8 @@ class PerceptionResult:
     n_confident_pairs: int = 0
     detail: str = ""
     retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    verdict: Verdict | None = None
+    confidence: float = 0.0
 
     @property
     def localized(self) -> bool:
@@ -289,6 +314,17 @@ class Perceiver:
             points_w = self._metric_points(loc.backbone, pose.T_wc, pose.scale.scale) if loc.ok else None
         if not loc.ok:
             return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground)
+        with clock.stage("verification"):
+            verdict = self._verify(loc, pose)
+        if not verdict.ok:
+            loc = replace(
+                loc,
+                reason=verdict.reason,
+                detail=f"{verdict.detail} ({loc.detail})" if loc.detail else verdict.detail,
+            )
+            return _lost(
+                loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
+            )
         with clock.stage("occupancy"):  # stage 5
             occ = self.config.occupancy
             classes = self.map.update(
@@ -316,6 +352,23 @@ class Perceiver:
             n_confident_pairs=loc.n_confident_pairs,
             detail=loc.detail,
             retrieved=loc.retrieved,
+            verdict=verdict,
+            confidence=verdict.confidence,
+        )
+
+    def _verify(self, loc: _Localization, pose: _MetricPose) -> Verdict:
+        """:func:`verify_pose` of the metric pose against the frame's references, with the rival
+        poses of the pairs it does not explain (:func:`rival_poses`)."""
+        out, T_wi = loc.backbone, self.database.poses[loc.references]
+        cfg = self.config
+        support = reference_support(pose.T_wc, T_wi, out, self.camera, cfg.verify)
+        support = np.where(support >= cfg.verify.min_support_matches, support, 0)
+        rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
+        height_error = float("nan")
+        if self.anchor.initialized:
+            height_error = self.anchor.camera_height(pose.T_wc) - cfg.camera_height
+        return verify_pose(
+            pose.T_wc, T_wi, out, self.camera, cfg.verify, rivals=rivals, height_error=height_error
         )
 
     def _localize(

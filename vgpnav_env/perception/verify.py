@@ -20,14 +20,22 @@ backbone's unknown units until a scale (metres per unit) is applied.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import camera_yaw_pitch, make_pose, rotation_angle, wrap_angle
+from vgpnav_env.geometry import (
+    PinholeCamera,
+    camera_yaw_pitch,
+    invert_pose,
+    make_pose,
+    rotation_angle,
+    wrap_angle,
+)
 from vgpnav_env.perception.backbones.base import BackboneOutput
+from vgpnav_env.perception.backbones.classical import triangulate_query_depth
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
     MotionResult,
@@ -72,6 +80,15 @@ class VerifyConfig:
     second_round_radius: float = 1.5
     second_round_max_angle_deg: float = 35.0
     single_fallback_confidence: float | None = 0.15
+    max_epipolar_error_px: float = 2.0
+    min_support_matches: int = 30
+    min_supporting_references: int = 2
+    rival_distance: float = 0.5
+    rival_angle_deg: float = 10.0
+    ambiguity_ratio: float = 0.5
+    max_roll_deg: float | None = 5.0
+    pitch_range_deg: tuple[float, float] | None = (5.0, 40.0)
+    confidence_matches: float = 100.0
 
     def __post_init__(self) -> None:
         if self.scale_check_ratio is not None and self.scale_check_ratio <= 1:
@@ -80,6 +97,19 @@ class VerifyConfig:
             raise ValueError(f"pose_height_tolerance must be > 0 m or None, got {self.pose_height_tolerance}")
         if self.second_round_hypotheses < 1 or self.second_round_radius <= 0:
             raise ValueError("need second_round_hypotheses >= 1 and second_round_radius > 0 m")
+        if (
+            self.max_epipolar_error_px <= 0
+            or self.min_support_matches < 1
+            or self.min_supporting_references < 1
+        ):
+            raise ValueError(
+                "need max_epipolar_error_px > 0, min_support_matches >= 1 and min_supporting_references >= 1"
+            )
+        if not 0 < self.ambiguity_ratio <= 1 or self.confidence_matches <= 0:
+            raise ValueError(
+                f"need 0 < ambiguity_ratio <= 1 and confidence_matches > 0, got "
+                f"{self.ambiguity_ratio}, {self.confidence_matches}"
+            )
 
 
 @dataclass(frozen=True)
@@ -114,6 +144,213 @@ class PoseGate:
     def admits(self, T_wc: NDArray[np.float64]) -> bool:
         distance, yaw = self.deviation(T_wc)
         return distance <= self.max_distance and yaw <= self.max_yaw
+
+
+def epipolar_support(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    matches: Sequence[NDArray[np.floating]],
+    camera: PinholeCamera,
+    max_error_px: float,
+) -> NDArray[np.int64]:
+    """How many of each reference's feature matches the pose ``T_wq`` explains: (k,) counts.
+
+    ``T_wi`` (k, 4, 4): the references' poses; ``matches``: per reference (m_i, 4) pixels
+    ``(u_q, v_q, u_i, v_i)`` (:attr:`BackboneOutput.matches`). Under the relative pose
+    ``T_iq = T_wi^-1 T_wq`` a match counts when its Sampson distance to the epipolar geometry is
+    below ``max_error_px`` (pixels, at the camera's focal length) and its triangulated point lies
+    in front of both cameras; a reference at the query's centre (under 1 mm) is a pure rotation
+    and its matches are checked by reprojection. This
+    uses nothing of how the pose was found (retrieval, motion averaging), so it checks any pose
+    hypothesis against any references the query was matched with.
+    """
+    T_wi = np.asarray(T_wi, float).reshape(-1, 4, 4)
+    if len(matches) != len(T_wi):
+        raise ValueError(f"got {len(matches)} match arrays for {len(T_wi)} reference poses")
+    K_inv = np.linalg.inv(camera.K)
+    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    out = np.zeros(len(T_wi), np.int64)
+    for i, (T, m) in enumerate(zip(T_wi, matches, strict=True)):
+        m = np.asarray(m, float).reshape(-1, 4)
+        if len(m) == 0:
+            continue
+        T_iq = invert_pose(T) @ T_wq
+        R, t = T_iq[:3, :3], T_iq[:3, 3]
+        x_q = np.c_[m[:, :2], np.ones(len(m))] @ K_inv.T
+        x_i = np.c_[m[:, 2:], np.ones(len(m))] @ K_inv.T
+        Rx = x_q @ R.T
+        if np.linalg.norm(t) < 1e-3:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = f * np.linalg.norm(Rx[:, :2] / Rx[:, 2:3] - x_i[:, :2], axis=1)
+        else:
+            E = _skew(t / np.linalg.norm(t)) @ R
+            Ex_q, Etx_i = x_q @ E.T, x_i @ E
+            num = np.einsum("ij,ij->i", x_i, Ex_q)
+            den = Ex_q[:, 0] ** 2 + Ex_q[:, 1] ** 2 + Etx_i[:, 0] ** 2 + Etx_i[:, 1] ** 2
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = f * np.abs(num) / np.sqrt(den)
+            err[~triangulate_query_depth(x_q, x_i, R, t)[2]] = np.inf
+        out[i] = int(np.count_nonzero(np.nan_to_num(err, nan=np.inf) < max_error_px))
+    return out
+
+
+def reference_support(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    out: BackboneOutput,
+    camera: PinholeCamera,
+    config: VerifyConfig,
+) -> NDArray[np.int64]:
+    """(k,) matches of each reference that the pose ``T_wq`` explains: :func:`epipolar_support` of
+    the backbone's ``matches``; a backbone without matches (``matches`` None) counts a pair's
+    ``n_matches`` when its own relative pose agrees with ``T_wq`` (rotation and direction of the
+    query centre seen from the reference within ``rival_angle_deg``), else 0."""
+    if out.matches is not None:
+        return epipolar_support(T_wq, T_wi, out.matches, camera, config.max_epipolar_error_px)
+    T_iq_pose = invert_pose(T_wi) @ T_wq
+    T_iq = out.T_iq
+    limit = np.deg2rad(config.rival_angle_deg)
+    agree = np.zeros(len(T_wi), bool)
+    for i in range(len(T_wi)):
+        if out.confidence[i] <= 0:
+            continue
+        a, b = T_iq_pose[i, :3, 3], T_iq[i, :3, 3]
+        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
+        same_direction = np.arccos(np.clip(cos, -1.0, 1.0)) <= limit
+        agree[i] = rotation_angle(T_iq_pose[i, :3, :3], T_iq[i, :3, :3]) <= limit and same_direction
+    return np.where(agree, out.n_matches, 0).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether the images confirm a pose (:func:`verify_pose`).
+
+    ``ok``; ``reason``: "" or a lost reason ("unverified": too little support, a tilted camera or
+    a wrong camera height; "ambiguous": a distinct rival pose has comparable support);
+    ``detail``: the numbers behind it. ``support`` (k,): matches per reference the pose explains;
+    ``strength``: their sum over the supporting references (at least ``min_support_matches``);
+    ``rival_strength``: the strongest distinct rival's support from references the pose does
+    not explain (0 without one) and ``rival`` its pose. ``score`` in [0, 1):
+    ``strength / (strength + rival_strength + confidence_matches)`` -- more independent support,
+    higher; a rival, lower; ``confidence``: the score of an accepted pose, else 0.
+    """
+
+    ok: bool
+    reason: str
+    detail: str
+    score: float
+    support: NDArray[np.int64]
+    strength: int
+    rival_strength: int = 0
+    rival: NDArray[np.float64] | None = None
+
+    @property
+    def n_supporting(self) -> int:
+        return int(np.count_nonzero(self.support))
+
+    @property
+    def confidence(self) -> float:
+        return self.score if self.ok else 0.0
+
+
+def verify_pose(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    out: BackboneOutput,
+    camera: PinholeCamera,
+    config: VerifyConfig,
+    *,
+    rivals: Sequence[NDArray[np.float64]] = (),
+    height_error: float = float("nan"),
+) -> Verdict:
+    """Check the pose ``T_wq`` (metric, W) against the query's matches with references ``T_wi``
+    (k, 4, 4; ``out``: the backbone output of the query with exactly these references).
+
+    The pose must explain at least ``min_support_matches`` matches of each of at least
+    ``min_supporting_references`` references (:func:`reference_support`), keep the camera's roll
+    and pitch of a ground robot's mount (``max_roll_deg``, ``pitch_range_deg``) and its height
+    (``height_error``: metres above the anchored ground minus the calibrated camera height, nan
+    = unknown; at most ``pose_height_tolerance``); else "unverified". Each pose of ``rivals``
+    farther than ``rival_distance`` metres or ``rival_angle_deg`` from ``T_wq`` is scored by the
+    support it gets from the references ``T_wq`` does not explain (at least
+    ``min_supporting_references`` of them, like the pose itself); when the strongest reaches
+    ``ambiguity_ratio`` times the pose's own, two places fit the images: "ambiguous". Nothing
+    here depends on how the pose or the references were found (retrieval, tracking).
+    """
+    raw = reference_support(T_wq, T_wi, out, camera, config)
+    support = np.where(raw >= config.min_support_matches, raw, 0)
+    strength = int(support.sum())
+    explained = support > 0
+    rival_strength, rival = 0, None
+    for T in rivals:
+        distinct = np.linalg.norm(T[:3, 3] - T_wq[:3, 3]) > config.rival_distance or rotation_angle(
+            T[:3, :3], T_wq[:3, :3]
+        ) > np.deg2rad(config.rival_angle_deg)
+        if not distinct:
+            continue
+        theirs = reference_support(T, T_wi, out, camera, config)
+        own = ~explained & (theirs >= config.min_support_matches)
+        if own.sum() < config.min_supporting_references:
+            continue  # one pair alone is no place (a plane's matches fit several poses)
+        value = int(theirs[own].sum())
+        if value > rival_strength:
+            rival_strength, rival = value, T
+    score = strength / (strength + rival_strength + config.confidence_matches)
+    roll = float(np.degrees(np.arcsin(np.clip(T_wq[2, 0], -1.0, 1.0))))
+    pitch = float(np.degrees(camera_yaw_pitch(T_wq)[1]))
+    n = int(explained.sum())
+
+    def verdict(reason: str, detail: str) -> Verdict:
+        return Verdict(not reason, reason, detail, score, support, strength, rival_strength, rival)
+
+    if config.max_roll_deg is not None and abs(roll) > config.max_roll_deg:
+        return verdict("unverified", f"camera rolled {roll:+.1f} deg")
+    lo, hi = config.pitch_range_deg or (-90.0, 90.0)
+    if not lo <= pitch <= hi:
+        return verdict("unverified", f"camera pitched {pitch:.1f} deg down")
+    tol = config.pose_height_tolerance
+    if tol is not None and abs(height_error) > tol:
+        return verdict("unverified", f"camera height off by {height_error:+.2f} m")
+    if n < config.min_supporting_references:
+        return verdict("unverified", f"{n} reference(s) support the pose (support {raw.tolist()})")
+    if rival_strength >= config.ambiguity_ratio * strength:
+        return verdict(
+            "ambiguous",
+            f"a pose {np.linalg.norm(rival[:3, 3] - T_wq[:3, 3]):.1f} m away has support {rival_strength} "
+            f"against {strength}",
+        )
+    return verdict("", f"{n} references, support {strength}, rival {rival_strength}")
+
+
+def rival_poses(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    out: BackboneOutput,
+    support: NDArray[np.int64],
+    scale: float,
+    averaging: MotionAveragingConfig,
+) -> list[NDArray[np.float64]]:
+    """Pose hypotheses that compete with ``T_wq``, from the pairs it does not explain
+    (``support`` 0): the weighted motion average of those pairs (when it succeeds), then each such
+    pair on its own (rotation ``R_wi R_iq``, centre along its ray at ``scale`` metres per backbone
+    unit)."""
+    rest = (out.confidence > 0) & (support == 0)
+    if not rest.any():
+        return []
+    rivals = []
+    if rest.sum() >= 2:
+        motion = average_motion(T_wi, out.T_qi, np.where(rest, out.confidence, 0.0), averaging)
+        if motion.ok:
+            rivals.append(motion.T_wq)
+    T_iq = out.T_iq
+    for i in np.flatnonzero(rest):
+        R = T_wi[i, :3, :3] @ T_iq[i, :3, :3]
+        rivals.append(make_pose(R, pair_centre(T_wi[i], T_iq[i], scale)))
+    return rivals
+
+
+def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def check_height(

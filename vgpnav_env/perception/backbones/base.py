@@ -8,7 +8,10 @@ A backbone turns a query image and ``k`` reference images (same pinhole camera) 
   query depth -- the backbone's own normalised scale (each backbone documents its choice);
 - ``confidence`` (k,) in [0, 1], 0 for a failed pair; ``n_matches`` (k,) int;
 - ``query_depth`` (H, W) float32 z-depth at that same scale (0 where unknown) with
-  ``query_depth_confidence`` (H, W) in [0, 1]; optional ``reference_depths`` (k, H, W).
+  ``query_depth_confidence`` (H, W) in [0, 1]; optional ``reference_depths`` (k, H, W);
+- optional ``matches``: per reference the putative feature matches (m_i, 4) float32 pixels
+  ``(u_q, v_q, u_i, v_i)`` the pair's geometry was estimated from, so that any pose can be checked
+  against the images (:func:`vgpnav_env.perception.verify.epipolar_support`).
 
 Backbones never see database poses or ground-truth depth; only backbones whose class
 attribute ``privileged`` is True read the :class:`Privileged` bundle.
@@ -57,7 +60,9 @@ class BackboneOutput:
     ``scale_valid`` (k,) is False for a pair whose translation *direction* is estimated but
     whose translation *length* could not be tied to the common scale (its translation is then
     a unit-consistent guess; rotation and direction stay usable). ``scale`` names the
-    backbone's normalisation of the unknown scale, e.g. ``"median_query_depth"``.
+    backbone's normalisation of the unknown scale, e.g. ``"median_query_depth"``. ``matches``:
+    see the module docstring (None when the backbone has no feature matches; an empty array for
+    a pair that failed before matching).
     """
 
     T_qi: NDArray[np.float64]
@@ -70,6 +75,7 @@ class BackboneOutput:
     reference_depths: NDArray[np.float32] | None = None
     scale_valid: NDArray[np.bool_] | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    matches: list[NDArray[np.float32]] | None = None
 
     def __post_init__(self) -> None:
         k = len(self.T_qi)
@@ -89,6 +95,10 @@ class BackboneOutput:
             self.scale_valid = self.confidence > 0
         if self.scale_valid.shape != (k,):
             raise ValueError(f"scale_valid must have shape ({k},), got {self.scale_valid.shape}")
+        if self.matches is not None and (
+            len(self.matches) != k or any(m.ndim != 2 or m.shape[1] != 4 for m in self.matches)
+        ):
+            raise ValueError(f"matches must be {k} arrays of shape (m, 4) (query and reference pixels)")
         if self.reference_depths is not None and self.reference_depths.shape != (k, *self.query_depth.shape):
             raise ValueError(
                 f"reference_depths must have shape {(k, *self.query_depth.shape)}, "

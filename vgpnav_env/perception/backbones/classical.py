@@ -352,7 +352,7 @@ class _QueryMemo:
 
     key: bytes
     features: Features
-    pairs: dict[Hashable, tuple[PairGeometry | None, int]] = field(default_factory=dict)
+    pairs: dict[Hashable, tuple[PairGeometry | None, int, NDArray[np.float32]]] = field(default_factory=dict)
 
 
 class _StageClock:
@@ -417,12 +417,15 @@ class ClassicalBackbone(Backbone):
 
     def relative_pose(
         self, fq: Features, fr: Features, camera: PinholeCamera
-    ) -> tuple[PairGeometry | None, int]:
-        """Two-view geometry of one pair and its verified match count; None when it fails."""
+    ) -> tuple[PairGeometry | None, int, NDArray[np.float32]]:
+        """Two-view geometry of one pair (None when it fails), its verified match count and its
+        putative matches (m, 4) float32 pixels ``(u_q, v_q, u_r, v_r)``."""
         cfg = self.config
         matches = match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
+        pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
+        pixels = np.hstack([pq, pr]).astype(np.float32)
         if len(matches) < cfg.min_inliers:
-            return None, 0
+            return None, 0, pixels
         K = camera.K
         cam = {
             "model": "PINHOLE",
@@ -430,7 +433,6 @@ class ClassicalBackbone(Backbone):
             "height": camera.height,
             "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
         }
-        pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
         pose, info = poselib.estimate_relative_pose(
             pq,
             pr,
@@ -446,7 +448,7 @@ class ClassicalBackbone(Backbone):
         inliers = np.asarray(info["inliers"], bool)
         n_inliers = int(inliers.sum())
         if n_inliers < cfg.min_inliers:
-            return None, n_inliers
+            return None, n_inliers, pixels
         R, t = np.asarray(pose.R), np.asarray(pose.t)
         t = t / np.linalg.norm(t)
         K_inv = np.linalg.inv(K)
@@ -474,6 +476,7 @@ class ClassicalBackbone(Backbone):
                 depth=depth[good],
             ),
             n_inliers,
+            pixels,
         )
 
     def reconstruct(self, views: Views) -> BackboneOutput:
@@ -544,6 +547,7 @@ class ClassicalBackbone(Backbone):
             scale="median_query_depth",
             scale_valid=linked & (confidence > 0),
             timings=timings,
+            matches=[r[2] for r in results],
         )
 
     def select_sweep_references(
