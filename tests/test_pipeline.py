@@ -165,8 +165,10 @@ def test_simulated_backbone_is_exact(database: Database, query) -> None:
 
 
 def test_classical_backbone_localizes(database: Database, query) -> None:
-    """Pixels only. Measured: 4 of 6 queries within 1.3 cm / 0.4 deg, one 90 deg off (a wrong
-    rotation consensus facing a near wall), one lost. Asserted: >= 4 of 6 within 5 cm / 1 deg."""
+    """Pixels only. The room's walls share one texture image, so views of a wall alias with the
+    wall across the room or beside it. Measured: 3 of 6 queries within 1.7 cm / 0.6 deg, 3 lost
+    as "ambiguous" (rivals turned 90 deg about the vertical, 0.8-2.7 m away, supported by 2-4 other
+    references). Asserted: >= 3 within 5 cm / 1 deg and none localized farther off."""
     run, _ = query
     perceiver = Perceiver(database, "classical", config=PerceptionConfig(camera_height=QUERY_HEIGHT))
     results = [perceiver.perceive(im) for im in run.images]
@@ -177,9 +179,9 @@ def test_classical_backbone_localizes(database: Database, query) -> None:
         ]
     )
     good = (errs[:, 0] < 0.05) & (errs[:, 1] < 1.0)
-    assert good.sum() >= 4, (errs, [(r.reason, r.detail) for r in results])
-    for r in results:
-        assert r.localized or r.reason in LOST_REASONS
+    assert good.sum() >= 3, (errs, [(r.reason, r.detail) for r in results])
+    for r, ok in zip(results, good, strict=True):
+        assert ok or (r.status == "lost" and r.reason in LOST_REASONS), (r.reason, r.detail)
 
 
 @pytest.mark.parametrize("image", ["black", "grey", "noise"])

@@ -135,9 +135,9 @@ def test_pose_from_another_rooms_references_is_rejected() -> None:
 def test_wrong_camera_height_or_tilt_is_rejected() -> None:
     T_a, _, T_wi, out = _aliased_frame("A")
     config = VerifyConfig(pose_height_tolerance=0.3)
-    assert verify_pose(T_a, T_wi, out, CAMERA, config, height_error=0.1).ok
-    high = verify_pose(T_a, T_wi, out, CAMERA, config, height_error=-0.9)
-    assert high.reason == "unverified" and high.detail == "camera height off by -0.90 m"
+    assert verify_pose(T_a, T_wi, out, CAMERA, config, camera_z=1.1).ok  # 0.1 m high: within 0.3 m
+    low = verify_pose(T_a, T_wi, out, CAMERA, config, camera_z=2.1)
+    assert low.reason == "unverified" and low.detail == "camera height off by -0.90 m"
     rolled = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(20.0), roll=np.deg2rad(12.0))
     assert "rolled" in verify_pose(rolled, T_wi, out, CAMERA, config).detail
     level = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(-20.0))  # looking up

@@ -364,12 +364,8 @@ class Perceiver:
         support = reference_support(pose.T_wc, T_wi, out, self.camera, cfg.verify)
         support = np.where(support >= cfg.verify.min_support_matches, support, 0)
         rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
-        height_error = float("nan")
-        if self.anchor.initialized:
-            height_error = self.anchor.camera_height(pose.T_wc) - cfg.camera_height
-        return verify_pose(
-            pose.T_wc, T_wi, out, self.camera, cfg.verify, rivals=rivals, height_error=height_error
-        )
+        camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
+        return verify_pose(pose.T_wc, T_wi, out, self.camera, cfg.verify, rivals=rivals, camera_z=camera_z)
 
     def _localize(
         self, rgb: NDArray[np.uint8], privileged: Privileged | None, clock: _Clock

@@ -261,16 +261,17 @@ def verify_pose(
     config: VerifyConfig,
     *,
     rivals: Sequence[NDArray[np.float64]] = (),
-    height_error: float = float("nan"),
+    camera_z: float = float("nan"),
 ) -> Verdict:
     """Check the pose ``T_wq`` (metric, W) against the query's matches with references ``T_wi``
     (k, 4, 4; ``out``: the backbone output of the query with exactly these references).
 
-    The pose must explain at least ``min_support_matches`` matches of each of at least
-    ``min_supporting_references`` references (:func:`reference_support`), keep the camera's roll
-    and pitch of a ground robot's mount (``max_roll_deg``, ``pitch_range_deg``) and its height
-    (``height_error``: metres above the anchored ground minus the calibrated camera height, nan
-    = unknown; at most ``pose_height_tolerance``); else "unverified". Each pose of ``rivals``
+    The pose must keep the camera's roll and pitch of a ground robot's mount (``max_roll_deg``,
+    ``pitch_range_deg``) and its height (within ``pose_height_tolerance`` of ``camera_z``, the
+    world z of the calibrated camera above the anchored ground; nan = unknown), and explain at
+    least ``min_support_matches`` matches of each of at least ``min_supporting_references``
+    references (:func:`reference_support`); else "unverified". Each pose of ``rivals`` that a
+    ground robot's camera could have (the same mount checks) and lies
     farther than ``rival_distance`` metres or ``rival_angle_deg`` from ``T_wq`` is scored by the
     support it gets from the references ``T_wq`` does not explain (at least
     ``min_supporting_references`` of them, like the pose itself); when the strongest reaches
@@ -283,6 +284,8 @@ def verify_pose(
     explained = support > 0
     rival_strength, rival = 0, None
     for T in rivals:
+        if _implausible(T, camera_z, config):
+            continue
         distinct = np.linalg.norm(T[:3, 3] - T_wq[:3, 3]) > config.rival_distance or rotation_angle(
             T[:3, :3], T_wq[:3, :3]
         ) > np.deg2rad(config.rival_angle_deg)
@@ -296,21 +299,14 @@ def verify_pose(
         if value > rival_strength:
             rival_strength, rival = value, T
     score = strength / (strength + rival_strength + config.confidence_matches)
-    roll = float(np.degrees(np.arcsin(np.clip(T_wq[2, 0], -1.0, 1.0))))
-    pitch = float(np.degrees(camera_yaw_pitch(T_wq)[1]))
     n = int(explained.sum())
 
     def verdict(reason: str, detail: str) -> Verdict:
         return Verdict(not reason, reason, detail, score, support, strength, rival_strength, rival)
 
-    if config.max_roll_deg is not None and abs(roll) > config.max_roll_deg:
-        return verdict("unverified", f"camera rolled {roll:+.1f} deg")
-    lo, hi = config.pitch_range_deg or (-90.0, 90.0)
-    if not lo <= pitch <= hi:
-        return verdict("unverified", f"camera pitched {pitch:.1f} deg down")
-    tol = config.pose_height_tolerance
-    if tol is not None and abs(height_error) > tol:
-        return verdict("unverified", f"camera height off by {height_error:+.2f} m")
+    mount = _implausible(T_wq, camera_z, config)
+    if mount:
+        return verdict("unverified", mount)
     if n < config.min_supporting_references:
         return verdict("unverified", f"{n} reference(s) support the pose (support {raw.tolist()})")
     if rival_strength >= config.ambiguity_ratio * strength:
@@ -320,6 +316,23 @@ def verify_pose(
             f"against {strength}",
         )
     return verdict("", f"{n} references, support {strength}, rival {rival_strength}")
+
+
+def _implausible(T_wc: NDArray[np.float64], camera_z: float, config: VerifyConfig) -> str:
+    """Why a ground robot's camera cannot have the pose ``T_wc`` ("" when it can): roll, pitch or
+    height (world z against ``camera_z``, unchecked when nan) outside the :class:`VerifyConfig`
+    limits."""
+    roll = float(np.degrees(np.arcsin(np.clip(T_wc[2, 0], -1.0, 1.0))))
+    if config.max_roll_deg is not None and abs(roll) > config.max_roll_deg:
+        return f"camera rolled {roll:+.1f} deg"
+    pitch = float(np.degrees(camera_yaw_pitch(T_wc)[1]))
+    lo, hi = config.pitch_range_deg or (-90.0, 90.0)
+    if not lo <= pitch <= hi:
+        return f"camera pitched {pitch:.1f} deg down"
+    off = float(T_wc[2, 3] - camera_z)
+    if config.pose_height_tolerance is not None and abs(off) > config.pose_height_tolerance:
+        return f"camera height off by {off:+.2f} m"
+    return ""
 
 
 def rival_poses(
