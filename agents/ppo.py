@@ -25,7 +25,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from vgpnav_env.arguments import seed_arg
+from vgpnav_env.arguments import positive_int_arg, seed_arg
 from vgpnav_env.perception.backbones import BACKBONES
 
 logger = logging.getLogger(__name__)
@@ -146,8 +146,11 @@ def train_ppo(
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CheckpointCallback
 
+    from vgpnav_env.scenes import list_layouts
+
     if steps <= 0:
         raise ValueError(f"steps must be positive, got {steps}")
+    list_layouts(scene)  # an unknown scene fails here, before anything is written
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     defaults = {**DEFAULT_ENV_KWARGS, "image_size": PERCEPTION_IMAGE_SIZE} if backbone else DEFAULT_ENV_KWARGS
@@ -202,8 +205,8 @@ def train_ppo(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """CLI arguments of ``vgpnav train ppo``."""
     parser.add_argument("scene", help="built-in scene name (e.g. home)")
-    parser.add_argument("--steps", type=int, default=100_000, help="total env steps")
-    parser.add_argument("--envs", type=int, default=2, help="parallel envs")
+    parser.add_argument("--steps", type=positive_int_arg, default=100_000, help="total env steps")
+    parser.add_argument("--envs", type=positive_int_arg, default=2, help="parallel envs")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument(
         "--backbone", choices=sorted(BACKBONES), default=None, help="perception backbone (default: none)"
@@ -216,11 +219,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="build directory of the scene (default: cache, built if missing)",
     )
     parser.add_argument("--seed", type=seed_arg, default=0)
-    parser.add_argument("--checkpoint-every", type=int, default=10_000, help="env steps between checkpoints")
+    parser.add_argument(
+        "--checkpoint-every", type=positive_int_arg, default=10_000, help="env steps between checkpoints"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav train ppo``; returns the process exit code."""
+    if args.database is not None and not args.database.is_dir():
+        raise ValueError(f"--database {args.database}: no such build directory (make one with vgpnav build)")
     if args.backbone == "learned":
         raise ValueError(
             "PPO trains with --backbone classical or simulated; the learned backbone is for vgpnav eval"

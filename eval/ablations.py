@@ -15,6 +15,7 @@ import argparse
 from dataclasses import replace
 from typing import Any
 
+from vgpnav_env.arguments import positive_int_arg
 from vgpnav_env.eval.perception_runs import (
     QueryRun,
     add_backbone_arguments,
@@ -25,10 +26,9 @@ from vgpnav_env.eval.perception_runs import (
     query_records,
     resolve_build,
 )
-from vgpnav_env.eval.report import markdown_table, write_report
-from vgpnav_env.perception.database import DatabaseConfig, open_database
+from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
+from vgpnav_env.eval.workers import Workers, add_worker_arguments, workers_from_args
 from vgpnav_env.perception.pipeline import PerceptionConfig
-from vgpnav_env.runs import load_build
 
 #: name -> (retrieval, averaging, scale recovery).
 CONFIGS: dict[str, tuple[str, str, bool]] = {
@@ -55,18 +55,27 @@ TABLE_V = [
 ]
 
 
-def evaluate_ablations(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
-    """Metrics of every configuration (``run`` with its config's switches set) and the two tables."""
+def evaluate_ablations(
+    run: QueryRun, *, workers: Workers | None = None, progress: bool = True
+) -> dict[str, Any]:
+    """Metrics of every configuration (``run`` with its config's switches set) and the two tables;
+    ``workers`` (default: this process) perceive the frames, keeping the database and the backbone
+    between configurations."""
     k, n_queries = run.config.retrieval.k, run.n_queries
-    db = open_database(run.build_dir, DatabaseConfig(prior="none"))
+    own = workers is None
+    workers = workers or Workers(1, progress=progress)
     results: dict[str, dict[str, Any]] = {}
-    for name, (retrieval, averaging, scale) in CONFIGS.items():
-        config = PerceptionConfig.ablation(retrieval=retrieval, averaging=averaging, scale=scale, k=k)
-        records = query_records(replace(run, config=config), database=db, progress=progress)
-        results[name] = {
-            "localization": localization_metrics(records),
-            "perception": perception_metrics(records),
-        }
+    try:
+        for name, (retrieval, averaging, scale) in CONFIGS.items():
+            config = PerceptionConfig.ablation(retrieval=retrieval, averaging=averaging, scale=scale, k=k)
+            records = query_records(replace(run, config=config), workers=workers)
+            results[name] = {
+                "localization": localization_metrics(records),
+                "perception": perception_metrics(records),
+            }
+    finally:
+        if own:
+            workers.close()
     table_iv = [
         {
             "geometry_retrieval": geo,
@@ -126,16 +135,22 @@ def _mark(flag: bool) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, queries=20)
     add_backbone_arguments(parser)
-    parser.add_argument("--k", type=int, default=10, help="number of references (default 10)")
+    parser.add_argument("--k", type=positive_int_arg, default=10, help="number of references (default 10)")
+    add_worker_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    clock = RunClock()
     options = backbone_options(args)
-    if args.k < 1:
-        raise ValueError(f"--k must be >= 1, got {args.k}")
     build = resolve_build(args)
     config = PerceptionConfig.ablation(k=args.k)
-    metrics = evaluate_ablations(QueryRun(build, args.backbone, options, config, args.queries, args.seed))
+    query_run = QueryRun(build, args.backbone, options, config, args.queries, args.seed)
+    with workers_from_args(args) as workers:
+        metrics = evaluate_ablations(query_run, workers=workers)
+    settings = {"scene": args.scene, **query_run.settings()}
+    for switch in ("retrieval", "averaging", "scale_recovery"):
+        settings[switch] = "per configuration"
+    settings |= run_settings(clock, workers.where, workers.cpu_seconds)
     iv = [
         (
             _mark(r["geometry_retrieval"]),
@@ -162,9 +177,7 @@ def run(args: argparse.Namespace) -> int:
         )
         for r in metrics["table_v"]
     ]
-    n = len(load_build(build).query) if not args.queries else args.queries
     sections = [
-        f"Scene `{args.scene}` ({build}), backbone `{args.backbone}`, k = {args.k}, {n} query frames. "
         "Paper Table IV is on 7-Scenes (VGGT backbone), Table V on its Home scene.",
         retrieval_comparison(metrics["configs"]),
         "## Table IV: localization (median over localized queries)\n\n"
@@ -198,5 +211,14 @@ def run(args: argparse.Namespace) -> int:
             ".3f",
         ),
     ]
-    write_report(args.out, "Ablations (paper Tables IV and V)", metrics, sections)
+    write_report(args.out, "Ablations (paper Tables IV and V)", metrics, sections, settings=settings)
+    full, none = metrics["configs"]["geometry-weighted-scale"], metrics["configs"]["topk-single-noscale"]
+    print_headline(
+        f"ablations {args.scene} ({args.backbone}): full pipeline median "
+        f"{100 * full['localization']['median_translation_m']:.1f} cm, "
+        f"Acc {full['perception']['acc_m']:.3f} m; "
+        f"without WMA and scale {100 * none['localization']['median_translation_m']:.1f} cm, "
+        f"Acc {none['perception']['acc_m']:.3f} m",
+        args.out,
+    )
     return 0

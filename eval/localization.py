@@ -26,6 +26,7 @@ from vgpnav_env.eval.perception_runs import (
     query_records,
 )
 from vgpnav_env.eval.query_reports import localization_summary, run_scenes
+from vgpnav_env.eval.workers import Workers, add_worker_arguments
 
 #: The table across scenes.
 COLUMNS = (
@@ -47,19 +48,31 @@ COLUMNS = (
 )
 
 
-def evaluate_localization(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
-    """Metrics dict (module docstring) of one configuration on a build's query run."""
-    records = query_records(run, progress=progress)
+def evaluate_localization(
+    run: QueryRun, *, workers: Workers | None = None, progress: bool = True
+) -> dict[str, Any]:
+    """Metrics dict (module docstring) of one configuration on a build's query run; ``workers``
+    (default: this process) perceive the frames."""
+    records = query_records(run, workers=workers, progress=progress)
     return {**localization_summary(records), "records": [asdict(r) for r in records]}
 
 
-def _evaluate(run: QueryRun) -> tuple[dict[str, Any], dict[str, Figure]]:
-    return evaluate_localization(run), {}
+def _evaluate(run: QueryRun, workers: Workers) -> tuple[dict[str, Any], dict[str, Figure]]:
+    return evaluate_localization(run, workers=workers), {}
+
+
+def headline(scene: str, m: dict[str, Any]) -> str:
+    return (
+        f"localization {scene}: {m['n_queries']} queries, lost {m['lost_rate']:.0%}, gross "
+        f"{m['n_gross']}, recall 5 cm / 5 deg {m['recall_5cm_5deg']:.2f}, median "
+        f"{m['median_translation_m']:.3f} m / {m['median_rotation_deg']:.2f} deg"
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, queries=50, several=True)
     add_pipeline_arguments(parser)
+    add_worker_arguments(parser)
 
 
 def paper_note(metrics: dict[str, Any]) -> list[str]:
@@ -67,4 +80,4 @@ def paper_note(metrics: dict[str, Any]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_scenes(args, "Localization", _evaluate, COLUMNS, paper_note)
+    return run_scenes(args, "Localization", _evaluate, COLUMNS, headline, paper_note)

@@ -1,42 +1,57 @@
 """Navigation protocol: success rate, SPL and soft SPL of an agent over point-goal episodes.
 
-``vgpnav eval navigation SCENE --agent astar|oracle|ppo:PATH --backbone classical|simulated
---episodes N --out DIR [--seed S] [--size WxH]`` writes ``DIR/report.json`` (aggregates and one
-record per episode), ``DIR/report.md`` and a top-down picture of every trajectory under
-``DIR/trajectories/``. Episode ``i`` is ``reset(seed=seed + i)`` on the scene's changed layout, so
-every agent sees the same start/goal pairs.
+``vgpnav eval navigation SCENE --agent astar|oracle|ppo:PATH --backbone B --episodes N --out DIR
+[--seed S] [--size WxH] [--max-steps N] [--workers N] [--ray [ADDRESS]]`` writes
+``DIR/report.json`` (settings, aggregates, one record per episode with its per-frame pose errors),
+``DIR/report.md`` (settings, failure labels, summary, per-episode table, plots), ``DIR/errors.png``
+(pose-error CDF over all frames, lost fraction per episode) and one picture per episode under
+``DIR/trajectories/`` (:mod:`vgpnav_env.eval.navigation_plots`). Episode ``i`` is
+``reset(seed=seed + i)`` on the scene's changed layout, so every agent sees the same start/goal
+pairs, and episodes run in parallel on ``--workers`` processes or a Ray cluster
+(:mod:`vgpnav_env.eval.workers`; each worker builds the env, the perception and the agent once)
+with the same records as a sequential run.
 
-Failure reasons: ``timeout`` (no stop within the step budget), ``stopped-too-far`` (stop farther
-than the success distance) and ``lost`` (a perception agent whose pose estimate was not localized
-on at least half of the steps).
+Metrics come from the measures registry (:mod:`vgpnav_env.measures`). Failure labels (one per
+failed episode, the first that applies; :data:`FAILURES`): ``lost`` (perception never localized),
+``mislocalized`` (the pose estimate was more than the success distance off at the end or on most
+frames), ``stopped-too-far`` and ``timeout``.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
-from tqdm import tqdm
 
-from vgpnav_env.agents import ppo
+from vgpnav_env.agents import AGENTS, agent_choices, parse_agent, ppo
 from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
-from vgpnav_env.arguments import seed_arg, size_arg
+from vgpnav_env.arguments import positive_int_arg, seed_arg, size_arg
 from vgpnav_env.eval.perception_runs import add_backbone_arguments, backbone_options
-from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
+from vgpnav_env.eval.workers import Workers, add_worker_arguments, workers_from_args
 from vgpnav_env.measures import MEASURES, Measure
 from vgpnav_env.robot import Action
 
 logger = logging.getLogger(__name__)
 
 ENV_ID = "VGPNav/PointGoal-v0"
-FAILURES = ("timeout", "stopped-too-far", "lost")
+#: A pose estimate this many times the success distance off counts as wrong (``mislocalized``).
+MISLOCALIZED = 1.0
+#: Failure label -> definition (``{d}``: the success distance in metres); checked in this order.
+FAILURES: dict[str, str] = {
+    "lost": "perception never localized in the episode: the agent never had a pose to plan from",
+    "mislocalized": "the pose estimate was more than the success distance ({d:g} m) off at the end "
+    "of the episode or on at least half of its frames",
+    "stopped-too-far": "the agent stopped farther than {d:g} m from the goal with a right pose estimate "
+    "(or none: the oracle's is the true pose)",
+    "timeout": "the step budget ran out with a right pose estimate (or none)",
+}
 
 
 class Policy(Protocol):
@@ -94,41 +109,72 @@ class PerceptionAStar:
         return self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal)
 
 
-def perception_wrapper(backbone: str, **wrapper_kwargs: Any) -> Callable[[gym.Env], gym.Env]:
-    """``env -> VGPNavObservation(env, backbone=backbone, **wrapper_kwargs)``."""
+@dataclass(frozen=True)
+class AgentPlan:
+    """What running an ``--agent`` takes: its ``name`` (:data:`vgpnav_env.agents.AGENTS`), the
+    perception ``backbone`` it drives on (None: none), the env keyword arguments it needs, and for
+    a PPO policy the ``model`` file and the ``database_dir`` it was trained with."""
+
+    name: str
+    backbone: str | None
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    model: Path | None = None
+    database_dir: str | None = None
+
+    @property
+    def description(self) -> str:
+        """E.g. ``astar (VGP-Nav, classical backbone)``."""
+        what = f"VGP-Nav, {self.backbone} backbone" if self.backbone else "no perception"
+        if self.name == "oracle":
+            what = "true pose and map"
+        return f"{self.name} ({what})"
+
+
+def plan_agent(agent: str, backbone: str) -> AgentPlan:
+    """The :class:`AgentPlan` of an ``--agent`` string (a one-line ValueError for an unknown name,
+    FileNotFoundError for a missing PPO model); ``backbone`` applies to perception agents."""
+    name, path = parse_agent(agent)
+    if name == "ppo":
+        model = ppo.model_path(path)
+        config = ppo.load_config(model)
+        env_kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
+        return AgentPlan(name, config.get("backbone"), env_kwargs, model, config.get("database_dir"))
+    if name == "oracle":
+        return AgentPlan(name, None, {"render_rgb": False})
+    return AgentPlan(name, backbone if AGENTS[name].perception else None)
+
+
+def make_policy(plan: AgentPlan, env: gym.Env) -> Policy:
+    """The policy of ``plan`` acting in ``env`` (already wrapped for perception when it needs it)."""
+    if plan.name == "oracle":
+        return OracleAgent(env)
+    if plan.name == "astar":
+        return PerceptionAStar(env)
+    return ppo.SB3Policy(plan.model)
+
+
+def make_env(plan: AgentPlan, env_kwargs: dict[str, Any], wrapper_kwargs: dict[str, Any]) -> gym.Env:
+    """The point-goal env with ``env_kwargs``, wrapped in ``VGPNavObservation(**wrapper_kwargs)``
+    when the agent drives on perception."""
+    env = gym.make(ENV_ID, **env_kwargs)
+    if plan.backbone is None:
+        return env
     from vgpnav_env.wrappers import VGPNavObservation
 
-    return lambda env: VGPNavObservation(env, backbone=backbone, **wrapper_kwargs)
-
-
-def make_agent(
-    agent: str, backbone: str, wrapper_kwargs: dict[str, Any] | None = None
-) -> tuple[Callable[[gym.Env], Policy], Callable[[gym.Env], gym.Env] | None, dict[str, Any]]:
-    """(policy factory over the env, observation wrapper or None, env keyword arguments the agent
-    needs) for an ``--agent`` string; ``wrapper_kwargs`` go to ``VGPNavObservation``."""
-    wrapper_kwargs = wrapper_kwargs or {}
-    if agent == "oracle":
-        return OracleAgent, None, {"render_rgb": False}
-    if agent == "astar":
-        return PerceptionAStar, perception_wrapper(backbone, **wrapper_kwargs), {}
-    if agent.startswith("ppo:"):
-        path = ppo.model_path(agent[4:])
-        config = ppo.load_config(path)
-        wrapper = perception_wrapper(config["backbone"], **wrapper_kwargs) if config.get("backbone") else None
-        env_kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
-        return (lambda env: ppo.SB3Policy(path)), wrapper, env_kwargs
-    raise ValueError(f"unknown agent {agent!r}; allowed: astar, oracle, ppo:PATH")
+    return VGPNavObservation(env, backbone=plan.backbone, **wrapper_kwargs)
 
 
 @dataclass
 class EpisodeRecord:
-    """One evaluated episode (metres, radians; failure None on success).
+    """One evaluated episode (metres, radians; failure None on success, else a :data:`FAILURES` label).
 
     ``metrics``: the episode value of every registered measure with a ``record`` name
     (:mod:`vgpnav_env.measures`): ``final_distance``, ``final_euclidean_distance``, ``success``,
     ``spl``, ``soft_spl``, ``collisions``, ``steps``, ``travelled``, and for agents with a pose
     estimate ``localization_error_m`` (mean over the frames acted on) and ``lost_fraction`` (None
-    without an estimate).
+    without an estimate). ``frames``: the per-frame values of the per-frame measures (uuid -> one
+    value per frame the agent acted on; empty without an estimate). ``collision_steps``: the steps
+    whose motion was blocked (the robot stood at ``trajectory[s + 1]`` after step ``s``).
     """
 
     index: int
@@ -140,6 +186,8 @@ class EpisodeRecord:
     metrics: dict[str, Any]
     trajectory: list[list[float]] = field(repr=False)
     estimated_trajectory: list[list[float]] | None = field(default=None, repr=False)
+    frames: dict[str, list[Any]] = field(default_factory=dict, repr=False)
+    collision_steps: list[int] = field(default_factory=list, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
         """The record as one flat JSON-ready dict (the metrics beside the other fields)."""
@@ -152,12 +200,19 @@ def _recorded() -> list[type[Measure]]:
     return [m for m in MEASURES.values() if m.record]
 
 
-def _failure(metrics: dict[str, Any], stopped: bool) -> str | None:
-    lost = metrics.get("lost_fraction")
+def classify_failure(
+    metrics: dict[str, Any], frames: dict[str, list[Any]], stopped: bool, success_distance: float
+) -> str | None:
+    """The :data:`FAILURES` label of an episode (None on success), the first that applies."""
     if metrics["success"]:
         return None
-    if lost is not None and lost >= 0.5:
+    localized = frames.get("localized", [])
+    errors = np.asarray(frames.get("localization_error_m", []), float)
+    if len(localized) and not any(localized):
         return "lost"
+    wrong = errors > MISLOCALIZED * success_distance
+    if len(errors) and (wrong[-1] or wrong.mean() >= 0.5):
+        return "mislocalized"
     return "stopped-too-far" if stopped else "timeout"
 
 
@@ -171,6 +226,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> Epis
     policy.reset()
     frames: dict[str, list[Any]] = {m.uuid: [] for m in _recorded() if m.per_frame}
     estimated: list[list[float]] = []
+    collisions: list[int] = []
     done = False
     while not done:
         if isinstance(obs, dict) and "pose" in obs:
@@ -179,32 +235,48 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> Epis
             if uuid in info:
                 values.append(info[uuid])
         obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        if info["blocked"]:
+            collisions.append(int(info["steps"]) - 1)
         done = terminated or truncated
     metrics: dict[str, Any] = {}
     for m in _recorded():
         values = frames[m.uuid] if m.per_frame else [info[m.uuid]] if m.uuid in info else []
         metrics[m.record] = m.episode_value(values)
+    frames = {uuid: [_plain(v) for v in values] for uuid, values in frames.items() if values}
     return EpisodeRecord(
         index=index,
         seed=seed,
         start=[float(v) for v in info["start"]],
         goal=[float(v) for v in info["goal"]],
         shortest_path_length=float(info["shortest_path_length"]),
-        failure=_failure(metrics, info["stopped"]),
+        failure=classify_failure(metrics, frames, info["stopped"], env.unwrapped.success_distance),
         metrics=metrics,
         trajectory=np.asarray(env.unwrapped.trajectory).round(4).tolist(),
         estimated_trajectory=estimated or None,
+        frames=frames,
+        collision_steps=collisions,
     )
+
+
+def _plain(value: Any) -> Any:
+    """A per-frame value as a plain Python number (rounded floats keep records small)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    return round(float(value), 4)
 
 
 def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
     """Aggregates over episode records: the mean of every measure with a ``summary`` key (over
-    the episodes that have a value; None if none has) and the failure counts."""
+    the episodes that have a value; None if none has), the 95th percentile over all frames of
+    every per-frame measure with a ``frame_p95`` key, and the failure counts."""
     summary: dict[str, Any] = {"episodes": len(records)}
     for m in _recorded():
         if m.summary:
             values = [r.metrics[m.record] for r in records if r.metrics.get(m.record) is not None]
             summary[m.summary] = float(np.mean(values)) if values else None
+        if m.frame_p95:
+            values = [v for r in records for v in r.frames.get(m.uuid, [])]
+            summary[m.frame_p95] = float(np.percentile(values, 95)) if values else None
     summary["failures"] = {f: sum(r.failure == f for r in records) for f in FAILURES}
     return summary
 
@@ -221,43 +293,87 @@ def episode_table(records: list[EpisodeRecord]) -> str:
     return markdown_table(header, rows)
 
 
-def plot_trajectory(env: gym.Env, record: EpisodeRecord, path: Path) -> None:
-    """Top-down picture of one episode over the ground-truth map (matplotlib PNG)."""
-    import matplotlib
+@dataclass(frozen=True)
+class NavigationSetup:
+    """A worker's setup (:mod:`vgpnav_env.eval.workers`): the env (``env_kwargs``), the perception
+    wrapper (``wrapper_kwargs``) and the agent of ``plan``, built once per worker; ``plots``: each
+    episode also returns its picture (PNG bytes)."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plan: AgentPlan
+    env_kwargs: dict[str, Any]
+    wrapper_kwargs: dict[str, Any]
+    plots: bool = True
 
-    gt = env.unwrapped.ground_truth
-    spec = gt.spec
-    img = np.full(spec.shape, 0.15)
-    img[gt.free] = 0.75
-    img[env.unwrapped.world.navigable] = 1.0
-    img[gt.obstacle] = 0.4
-    (x0, y0), (x1, y1) = spec.bounds
-    extent = (x0, x1, y0, y1)
-    fig, ax = plt.subplots(figsize=(6, 6 * spec.shape[0] / max(spec.shape[1], 1) + 0.5))
-    ax.imshow(img, cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
-    traj = np.asarray(record.trajectory)
-    ax.plot(traj[:, 0], traj[:, 1], "-", color="tab:green", lw=1.5, label="true")
-    if record.estimated_trajectory:
-        est = np.asarray(record.estimated_trajectory)
-        ax.plot(est[:, 0], est[:, 1], "--", color="tab:orange", lw=1.0, label="estimated")
-    ax.plot(*record.start[:2], "o", color="tab:cyan", label="start")
-    ax.plot(*record.goal, "*", color="tab:purple", ms=12, label="goal")
-    ax.add_patch(
-        plt.Circle(record.goal, env.unwrapped.success_distance, fill=False, ls=":", color="tab:purple")
-    )
-    outcome = record.failure or "success"
-    spl = record.metrics["spl"]
-    ax.set_title(f"episode {record.index} (seed {record.seed}): {outcome}, SPL {spl:.2f}")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_aspect("equal")
-    ax.legend(loc="best", fontsize=7)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90, bbox_inches="tight")
-    plt.close(fig)
+    def __call__(self) -> Navigator:
+        env = make_env(self.plan, self.env_kwargs, self.wrapper_kwargs)
+        return Navigator(env, make_policy(self.plan, env), self.plots)
+
+
+@dataclass
+class Navigator:
+    """A worker's state: the env and the policy it keeps between episodes."""
+
+    env: gym.Env
+    policy: Policy
+    plots: bool
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def episode_task(state: Navigator, item: tuple[int, int]) -> tuple[EpisodeRecord, bytes | None]:
+    """One episode ``(index, seed)`` on a worker: its record and (with plots) its picture."""
+    from vgpnav_env.eval.navigation_plots import episode_png
+
+    index, seed = item
+    record = run_episode(state.env, state.policy, seed, index)
+    return record, episode_png(state.env, record) if state.plots else None
+
+
+def navigation_settings(
+    scene: str, plan: AgentPlan, env_kwargs: dict[str, Any], episodes: int, seed: int
+) -> dict[str, Any]:
+    """The head of the report's settings table (:func:`~vgpnav_env.eval.report.run_settings` ends it)."""
+    import inspect
+
+    from vgpnav_env.envs.pointgoal import PointGoalEnv
+    from vgpnav_env.wrappers import VGPNavObservation
+
+    defaults = {k: p.default for k, p in inspect.signature(PointGoalEnv).parameters.items()}
+    size = env_kwargs["image_size"]
+    return {
+        "scene": scene,
+        "layout": env_kwargs["layout"],
+        "agent": plan.name,
+        "image size": f"{size[0]}x{size[1]}",
+        "backbone": plan.backbone or "none",
+        "perception mode": VGPNavObservation.perception_mode if plan.backbone else "none",
+        "max steps": env_kwargs.get("max_steps", defaults["max_steps"]),
+        "success radius (m)": env_kwargs.get("success_distance", defaults["success_distance"]),
+        "episodes": episodes,
+        "seeds": f"{seed}-{seed + episodes - 1}" if episodes > 1 else str(seed),
+    }
+
+
+def prepare_database(
+    scene: str, env_kwargs: dict[str, Any], wrapper_kwargs: dict[str, Any], progress: bool, prepare: bool
+) -> dict[str, Any]:
+    """``wrapper_kwargs`` with a ``database_dir``: the given one or the scene's default build at
+    the env's image size (built now if missing, with progress); with ``prepare`` it is opened once
+    here so that its index, features and prior are cached before several workers open it."""
+    from vgpnav_env.perception.database import open_database
+    from vgpnav_env.robot import FOVY_DEG
+    from vgpnav_env.wrappers import scene_database_dir
+
+    kwargs = dict(wrapper_kwargs)
+    if kwargs.get("database_dir") is None:
+        size = env_kwargs["image_size"]
+        texture = env_kwargs.get("texture", "realistic")
+        fovy = env_kwargs.get("fovy_deg", FOVY_DEG)
+        kwargs["database_dir"] = scene_database_dir(scene, size, texture, fovy, progress=progress)
+    if prepare:
+        open_database(kwargs["database_dir"], kwargs.get("database_config"))
+    return kwargs
 
 
 def evaluate_navigation(
@@ -272,55 +388,121 @@ def evaluate_navigation(
     progress: bool = True,
     database_dir: str | Path | None = None,
     wrapper_kwargs: dict[str, Any] | None = None,
+    workers: Workers | None = None,
 ) -> dict[str, Any]:
     """Run the protocol; returns the report dict (also written to ``out_dir`` if given).
 
     Perception agents use the database build at ``database_dir`` (default: the scene's build at
     the env's image size in the vgpnav cache, built if missing); ``wrapper_kwargs`` go to
-    ``VGPNavObservation``.
+    ``VGPNavObservation``. ``workers`` (default: this process) runs the episodes.
     """
+    from vgpnav_env.scenes import list_layouts
+
+    clock = RunClock()
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
-    wrapper_kwargs = dict(wrapper_kwargs or {})
-    if database_dir is not None:
-        wrapper_kwargs["database_dir"] = database_dir
-    make_policy, wrapper, agent_env_kwargs = make_agent(agent, backbone, wrapper_kwargs)
-    kwargs = {"scene": scene, "layout": "changed", "image_size": tuple(size), **agent_env_kwargs}
+    plan = plan_agent(agent, backbone)
+    kwargs = {"scene": scene, "layout": "changed", "image_size": tuple(size), **plan.env_kwargs}
     kwargs.update(env_kwargs or {})
-    env = gym.make(ENV_ID, **kwargs)
-    if wrapper is not None:
-        env = wrapper(env)
-    policy = make_policy(env)
-    records: list[EpisodeRecord] = []
+    if kwargs["layout"] not in list_layouts(scene):  # an unknown scene fails here, before any work
+        raise ValueError(f"scene {scene!r} has no layout {kwargs['layout']!r}; it has {list_layouts(scene)}")
+    wrapper_kwargs = dict(wrapper_kwargs or {})
+    if database_dir is not None or plan.database_dir is not None:
+        wrapper_kwargs["database_dir"] = database_dir if database_dir is not None else plan.database_dir
+    own = workers is None
+    workers = workers or Workers(1, progress=progress)
     try:
-        for i in tqdm(range(episodes), desc=f"navigation {scene} {agent}", disable=not progress):
-            record = run_episode(env, policy, seed + i, i)
-            records.append(record)
-            if out_dir is not None:
-                plot_trajectory(env, record, Path(out_dir) / "trajectories" / f"episode_{i:03d}.png")
+        if plan.backbone is not None:
+            several = workers.workers > 1 or workers.ray_address is not None
+            wrapper_kwargs = prepare_database(scene, kwargs, wrapper_kwargs, progress, several)
+        setup = NavigationSetup(plan, kwargs, wrapper_kwargs, plots=out_dir is not None)
+        items = [(i, seed + i) for i in range(episodes)]
+        results = workers.map(setup, episode_task, items, desc=f"navigation {scene} {agent}")
     finally:
-        env.close()
+        if own:
+            workers.close()
+    records = [record for record, _ in results]
+    settings = {
+        **navigation_settings(scene, plan, kwargs, episodes, seed),
+        **run_settings(clock, workers.where, workers.cpu_seconds),
+    }
     report = {
         "protocol": "navigation",
         "scene": scene,
         "layout": kwargs["layout"],
         "agent": agent,
-        "backbone": backbone if wrapper is not None else None,
+        "backbone": plan.backbone,
         "seed": seed,
         "image_size": list(size),
         **summarize(records),
         "records": [r.as_dict() for r in records],
     }
     if out_dir is not None:
-        table = episode_table(records)
-        pictures = "\n".join(f"![episode {r.index}](trajectories/episode_{r.index:03d}.png)" for r in records)
-        write_report(
-            out_dir,
-            f"Navigation: {scene} ({agent})",
-            report,
-            sections=["## Episodes\n\n" + table, "## Trajectories\n\n" + pictures],
-        )
+        write_navigation_report(Path(out_dir), f"Navigation: {scene} ({plan.description})", report, settings,
+                                records, [png for _, png in results])  # fmt: skip
+    report["settings"] = settings
     return report
+
+
+def write_navigation_report(
+    out: Path,
+    title: str,
+    report: dict[str, Any],
+    settings: dict[str, Any],
+    records: list[EpisodeRecord],
+    pictures: list[bytes | None],
+) -> None:
+    """``report.json`` / ``report.md``, ``errors.png`` and ``trajectories/episode_NNN.png``."""
+    from vgpnav_env.atomic import atomic_write
+    from vgpnav_env.eval.navigation_plots import summary_figure
+
+    success_distance = float(settings["success radius (m)"])
+    for r, png in zip(records, pictures, strict=True):
+        if png is not None:
+            (out / "trajectories").mkdir(parents=True, exist_ok=True)
+            atomic_write(out / "trajectories" / f"episode_{r.index:03d}.png", lambda f, png=png: f.write(png))
+    failures = markdown_table(["failure", "episodes"], list(report["failures"].items()))
+    pictures_md = "\n".join(f"![episode {r.index}](trajectories/episode_{r.index:03d}.png)" for r in records)
+    figures = {}
+    if any(r.frames for r in records):
+        figures["errors.png"] = summary_figure(records, success_distance)
+    write_report(
+        out,
+        title,
+        report,
+        sections=[
+            "Means are over episodes; `p95_localization_error_m` is over all frames the agent acted on. "
+            "`lost frames` is the fraction of those frames on which perception did not localize (the "
+            "pose was carried by odometry); `mean pose err` is the horizontal error of the pose the "
+            "agent acted on, localized or not.",
+            "## Failures\n\n" + failures,
+            "## Episodes\n\n" + episode_table(records),
+            "## Episodes, one picture each\n\nTop left: the true (green) and estimated (orange) "
+            "trajectories on the ground-truth map; red dots mark frames where perception was lost, "
+            "black crosses collisions. Top right: the fused obstacle map at the end of the episode. "
+            "Bottom: pose error over time, lost stretches shaded.\n\n" + pictures_md,
+        ],
+        figures=figures,
+        settings=settings,
+        labels={k: v.format(d=success_distance) for k, v in FAILURES.items()},
+    )
+
+
+def headline(report: dict[str, Any]) -> str:
+    """One line of the numbers that matter: SR, SPL, soft SPL, collisions, pose error, failures."""
+    n = report["episodes"]
+    line = (
+        f"navigation {report['scene']} ({report['agent']}): success {round(report['success_rate'] * n)}/{n} "
+        f"(SR {report['success_rate']:.2f}), SPL {report['spl']:.2f}, soft SPL {report['soft_spl']:.2f}, "
+        f"{report['collisions_per_episode']:.1f} collisions/episode"
+    )
+    if report.get("mean_localization_error_m") is not None:
+        line += (
+            f", pose error mean {report['mean_localization_error_m']:.2f} m / p95 "
+            f"{report['p95_localization_error_m']:.2f} m, lost {report['mean_lost_fraction']:.0%} of frames"
+        )
+    failures = ", ".join(f"{k} {v}" for k, v in report["failures"].items() if v)
+    return line + (f"; failures: {failures}" if failures else "")
 
 
 def evaluate_policy(
@@ -347,12 +529,29 @@ def evaluate_policy(
     )
 
 
+def agent_arg(text: str) -> str:
+    """argparse type of ``--agent``: a registered name, or ``ppo:PATH`` with a model there."""
+    try:
+        name, path = parse_agent(text)
+        if path is not None:
+            ppo.load_config(ppo.model_path(path))
+    except (ValueError, FileNotFoundError) as e:
+        raise argparse.ArgumentTypeError(str(e)) from e
+    return text
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """CLI arguments of ``vgpnav eval navigation``."""
     parser.add_argument("scene", help="built-in scene name (e.g. home, hospital) or scene source")
-    parser.add_argument("--agent", default="astar", help="astar | oracle | ppo:PATH (default astar)")
+    parser.add_argument(
+        "--agent",
+        type=agent_arg,
+        default="astar",
+        metavar="AGENT",
+        help=f"one of {agent_choices()} (default astar)",
+    )
     add_backbone_arguments(parser)
-    parser.add_argument("--episodes", type=int, default=20, help="number of start/goal pairs")
+    parser.add_argument("--episodes", type=positive_int_arg, default=20, help="number of start/goal pairs")
     parser.add_argument("--out", required=True, type=Path, help="report directory")
     parser.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i")
     parser.add_argument("--size", type=size_arg, default=(320, 240), help="camera image WxH")
@@ -363,31 +562,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="build directory (vgpnav build) of the scene at --size; default: the cache, built if missing",
     )
     parser.add_argument(
-        "--max-steps", type=int, default=500, help="steps before an episode times out (default 500, Habitat)"
+        "--max-steps",
+        type=positive_int_arg,
+        default=500,
+        help="steps before an episode times out (default 500, Habitat)",
     )
+    add_worker_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav eval navigation``; returns the process exit code."""
-    if args.max_steps <= 0:
-        raise ValueError(f"--max-steps must be a positive integer, got {args.max_steps}")
     options = backbone_options(args)
-    report = evaluate_navigation(
-        args.scene,
-        args.agent,
-        args.backbone,
-        args.episodes,
-        args.seed,
-        args.size,
-        out_dir=args.out,
-        env_kwargs={"max_steps": args.max_steps},
-        database_dir=args.database,
-        wrapper_kwargs={"backbone_options": options},
-    )
-    perception = "true pose and map" if args.agent == "oracle" else f"VGP-Nav, {args.backbone} backbone"
-    print(
-        f"navigation {args.scene} ({args.agent}, {perception}): success rate "
-        f"{report['success_rate']:.2f} ({round(report['success_rate'] * report['episodes'])}/"
-        f"{report['episodes']}), SPL {report['spl']:.2f}\nreport: {Path(args.out) / 'report.md'}"
-    )
+    if args.database is not None and not args.database.is_dir():
+        raise ValueError(f"--database {args.database}: no such build directory (make one with vgpnav build)")
+    with workers_from_args(args) as workers:
+        report = evaluate_navigation(
+            args.scene,
+            args.agent,
+            args.backbone,
+            args.episodes,
+            args.seed,
+            args.size,
+            out_dir=args.out,
+            env_kwargs={"max_steps": args.max_steps},
+            database_dir=args.database,
+            wrapper_kwargs={"backbone_options": options},
+            workers=workers,
+        )
+    print_headline(headline(report), args.out)
     return 0

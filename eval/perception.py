@@ -36,6 +36,7 @@ from vgpnav_env.eval.perception_runs import (
 )
 from vgpnav_env.eval.query_reports import localization_summary, run_scenes
 from vgpnav_env.eval.report import markdown_table
+from vgpnav_env.eval.workers import Workers, add_worker_arguments
 
 #: Paper Table III (Acc, Comp, Overall in metres) for comparison.
 PAPER = {
@@ -87,11 +88,14 @@ def points_figure(example: QueryFrame | None, max_points: int = 6000, seed: int 
     return fig
 
 
-def evaluate_perception(run: QueryRun, *, progress: bool = True) -> tuple[dict[str, Any], QueryFrame | None]:
-    """(metrics dict, the localized frame with the most points for :func:`points_figure`)."""
+def evaluate_perception(
+    run: QueryRun, *, workers: Workers | None = None, progress: bool = True
+) -> tuple[dict[str, Any], QueryFrame | None]:
+    """(metrics dict, the localized frame with the most points for :func:`points_figure`);
+    ``workers`` (default: this process) perceive the frames."""
     records: list[FrameRecord] = []
     example: QueryFrame | None = None
-    for frame in perceive_queries(run, progress=progress):
+    for frame in perceive_queries(run, workers=workers, progress=progress):
         records.append(frame.record)
         if frame.result.localized and (example is None or frame.record.n_points > example.record.n_points):
             example = frame
@@ -99,9 +103,17 @@ def evaluate_perception(run: QueryRun, *, progress: bool = True) -> tuple[dict[s
     return {**metrics, "records": [asdict(r) for r in records]}, example
 
 
-def _evaluate(run: QueryRun) -> tuple[dict[str, Any], dict[str, Figure]]:
-    metrics, example = evaluate_perception(run)
+def _evaluate(run: QueryRun, workers: Workers) -> tuple[dict[str, Any], dict[str, Figure]]:
+    metrics, example = evaluate_perception(run, workers=workers)
     return metrics, {"points.png": points_figure(example, seed=run.seed)}
+
+
+def headline(scene: str, m: dict[str, Any]) -> str:
+    return (
+        f"perception {scene}: Acc {m['acc_m']:.3f} m, Comp {m['comp_m']:.3f} m, Overall "
+        f"{m['overall_m']:.3f} m (means; medians {m['acc_median_m']:.3f} / {m['comp_median_m']:.3f} m) "
+        f"over {m['n_frames']} of {m['n_queries']} frames, lost {m['lost_rate']:.0%}"
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -112,6 +124,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="ablation: keep the backbone's unknown scale (no ground-anchored scale recovery)",
     )
+    add_worker_arguments(parser)
 
 
 def _sections(metrics: dict[str, Any]) -> list[str]:
@@ -126,5 +139,5 @@ def _sections(metrics: dict[str, Any]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     return run_scenes(
-        args, "Metric perception", _evaluate, COLUMNS, _sections, scale=not args.no_scale_recovery
+        args, "Metric perception", _evaluate, COLUMNS, headline, _sections, scale=not args.no_scale_recovery
     )

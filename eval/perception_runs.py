@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -36,14 +36,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
-from tqdm import tqdm
 
+from vgpnav_env.arguments import positive_int_arg
+from vgpnav_env.eval.workers import Workers
 from vgpnav_env.geometry import rotation_angle
-from vgpnav_env.perception.backbones import BACKBONES, Privileged, make_backbone
+from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
 from vgpnav_env.perception.retrieval import nearby_cameras
-from vgpnav_env.runs import load_build, load_run_depth
+from vgpnav_env.perception.scale_recovery import GroundAnchor
+from vgpnav_env.runs import Build, load_build, load_run_depth, read_build_summary, read_run_meta
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +66,7 @@ def add_scene_arguments(
 ) -> None:
     """``SCENE`` (``several``: one or more, ``args.scene`` is then a list), ``--build``, ``--size``,
     ``--seed``, ``--texture``, ``--out``, ``--queries``."""
-    from vgpnav_env.arguments import seed_arg, size_arg
+    from vgpnav_env.arguments import count_arg, seed_arg, size_arg
 
     what = "built-in scene name (home, hospital, home:SEED, hospital:SEED) or a scene spec file"
     if several:
@@ -93,7 +95,7 @@ def add_scene_arguments(
     parser.add_argument("--out", type=Path, required=True, help="report directory")
     parser.add_argument(
         "--queries",
-        type=int,
+        type=count_arg,
         default=queries,
         help=f"number of evenly spaced query frames, 0 = all (default {queries or 'all'})",
     )
@@ -138,7 +140,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--averaging", choices=("weighted", "single"), default="weighted", help="default weighted"
     )
-    parser.add_argument("--k", type=int, default=10, help="number of references (default 10)")
+    parser.add_argument("--k", type=positive_int_arg, default=10, help="number of references (default 10)")
 
 
 def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Path | None = None) -> Path:
@@ -146,6 +148,7 @@ def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Pat
     ``scene`` (default ``SCENE``)."""
     build = args.build if build is None else build
     if build is not None:
+        read_build_summary(build)  # a missing or damaged build fails here, before any work
         return Path(build)
     from vgpnav_env.build import build_runs, default_build_dir
 
@@ -268,14 +271,22 @@ class QueryRun:
         return cls(build_dir, args.backbone, options, config, args.queries, args.seed)
 
     def settings(self) -> dict[str, Any]:
-        """The report's settings: build, backbone and the ablation switches."""
+        """The report's settings: build, query layout and image size, backbone, perception mode,
+        the ablation switches, the query frames and the seed."""
+        meta = read_run_meta(Path(self.build_dir) / "query")
+        n = len(query_subset(meta["n_frames"], self.n_queries))
         return {
             "build": str(self.build_dir),
+            "layout": meta["layout"],
+            "image size": f"{meta['width']}x{meta['height']}",
             "backbone": self.backbone,
+            "perception mode": "paper",
             "retrieval": self.config.retrieval.method,
             "averaging": self.config.averaging.method,
             "scale_recovery": self.config.scale.enabled,
             "k": self.config.retrieval.k,
+            "query frames": f"{n} of {meta['n_frames']}",
+            "seed": self.seed,
         }
 
 
@@ -290,39 +301,137 @@ class QueryFrame:
     surface: NDArray[np.float64]
 
 
+@dataclass(frozen=True)
+class QuerySetup:
+    """A worker's setup for the query-frame protocols (:mod:`vgpnav_env.eval.workers`): the build,
+    its database (no prior: no protocol reads the map) and the backbone, opened once per worker."""
+
+    build_dir: Path
+    backbone: str
+    backbone_options: Mapping[str, Any]
+    seed: int
+
+    def __call__(self) -> QueryWorker:
+        build = load_build(self.build_dir)
+        db = open_database(build.path, DatabaseConfig(prior="none"))
+        net = make_backbone(self.backbone, database=db, seed=self.seed, **self.backbone_options)
+        return QueryWorker(build, load_run_depth(build.path / "query"), db, net, self.seed)
+
+
+@dataclass
+class QueryWorker:
+    """A worker's state: the build, the query run's true depth, the database and the backbone, and
+    a perceiver per pipeline config (built on first use)."""
+
+    build: Build
+    depth: NDArray[np.float32]
+    database: Database
+    backbone: Backbone
+    seed: int
+    perceivers: dict[PerceptionConfig, Perceiver] = field(default_factory=dict)
+
+    def perceiver(self, config: PerceptionConfig) -> Perceiver:
+        if config not in self.perceivers:
+            self.perceivers[config] = Perceiver(self.database, self.backbone, config=config)
+        return self.perceivers[config]
+
+    def privileged(self, i: int) -> Privileged | None:
+        query = self.build.query
+        return (
+            Privileged(query.poses[i], np.zeros((0, 4, 4)), self.depth[i])
+            if self.backbone.privileged
+            else None
+        )
+
+    def perceive(self, perceiver: Perceiver, i: int, max_depth: float, max_points: int) -> QueryFrame:
+        """Query frame ``i`` perceived and scored; the backbone's noise and the Acc / Comp
+        subsample are seeded by (seed, i), so the frame's result does not depend on the frames
+        perceived before it (only on the ground anchor)."""
+        query, depth = self.build.query, self.depth[i]
+        self.backbone.reseed(np.random.default_rng([self.seed, i]))
+        result = perceiver.perceive(query.images[i], self.privileged(i))
+        T = query.poses[i]
+        in_range = np.isfinite(depth) & (depth > 0) & (depth <= max_depth)
+        surface = query.camera.backproject_world(depth, T, in_range)
+        rng = np.random.default_rng([self.seed, i])
+        record = _record(i, result, T, surface, rng, max_points, self.database.poses)
+        return QueryFrame(record, replace(result, backbone=None), T, surface)
+
+
+@dataclass(frozen=True)
+class _Start:
+    """The anchor phase's outcome: the pipeline config with the calibrated camera height, the
+    ground anchor and the frames perceived before the anchor was set."""
+
+    config: PerceptionConfig
+    anchor: GroundAnchor
+    frames: list[QueryFrame]
+
+
+def _start_task(state: QueryWorker, item: tuple[PerceptionConfig, list[int], float, int]) -> _Start:
+    """Initialise the ground anchor on the first frame, the robot standing still, with that frame's
+    camera height as the calibrated height; if it does not localize, perceive frames in order
+    until one anchors the ground (as a sequential run does) and return them."""
+    config, frames, max_depth, max_points = item
+    config = replace(config, camera_height=float(state.build.query.poses[frames[0]][2, 3]))
+    perceiver = state.perceiver(config)
+    perceiver.reset()
+    state.backbone.reseed(np.random.default_rng([state.seed, frames[0]]))
+    perceiver.initialize(state.build.query.images[frames[0]], state.privileged(frames[0]))
+    before = []
+    for i in frames:
+        if perceiver.initialized:
+            break
+        before.append(state.perceive(perceiver, i, max_depth, max_points))
+    return _Start(config, perceiver.anchor, before)
+
+
+def _frames_task(state: QueryWorker, item: tuple[_Start, list[int], float, int]) -> list[QueryFrame]:
+    """Perceive a contiguous chunk of frames with the anchor phase's config and ground anchor."""
+    start, frames, max_depth, max_points = item
+    perceiver = state.perceiver(start.config)
+    perceiver.reset(start.anchor)
+    return [state.perceive(perceiver, i, max_depth, max_points) for i in frames]
+
+
 def perceive_queries(
     run: QueryRun,
     *,
-    database: Database | None = None,
+    workers: Workers | None = None,
     max_depth: float = 5.0,
     max_points: int = 4000,
     progress: bool = True,
-) -> Iterator[QueryFrame]:
-    """Perceive the run's query frames in order with one :class:`Perceiver` and score each (module
-    docstring); ``database`` (default: :func:`open_database` of the build, no prior) may be shared
-    between runs."""
-    build = load_build(run.build_dir)
-    db = database or open_database(build.path, DatabaseConfig(prior="none"))
-    query = build.query
-    depth = load_run_depth(build.path / "query")
-    net = make_backbone(run.backbone, database=db, seed=run.seed, **run.backbone_options)
-    frames = query_subset(len(query), run.n_queries)
-    # Calibrated camera-to-base height of the standing-still frame (floor at z = 0 in W).
-    config = replace(run.config, camera_height=float(query.poses[frames[0]][2, 3]))
-    perceiver = Perceiver(db, net, config=config)
+) -> list[QueryFrame]:
+    """Every query frame of ``run`` perceived and scored (module docstring), in frame order.
 
-    def privileged(i: int) -> Privileged | None:
-        return Privileged(query.poses[i], np.zeros((0, 4, 4)), depth[i]) if net.privileged else None
-
-    perceiver.initialize(query.images[frames[0]], privileged(frames[0]))
-    rng = np.random.default_rng(run.seed)
-    for i in tqdm(frames, desc="perceiving queries", unit="frame", disable=not progress):
-        result = perceiver.perceive(query.images[i], privileged(i))
-        T = query.poses[i]
-        in_range = np.isfinite(depth[i]) & (depth[i] > 0) & (depth[i] <= max_depth)
-        surface = query.camera.backproject_world(depth[i], T, in_range)
-        record = _record(int(i), result, T, surface, rng, max_points, db.poses)
-        yield QueryFrame(record, result, T, surface)
+    ``workers`` (default: this process) runs the frames. A query run is a sequence and its ground
+    anchor is state carried along it, so the work is split in two phases that give the same
+    frames whatever the number of workers: (1) one task initialises the anchor on the first frame
+    standing still, perceiving further frames in order only while none has anchored the ground;
+    (2) the remaining frames go out in contiguous chunks, each perceived by a fresh map with a
+    copy of that anchor. Nothing else carries over between frames: the pipeline's results do not
+    read the fused map, and each frame's random draws are seeded by (seed, frame). The results
+    carry the pipeline's output without the backbone's raw output (``result.backbone`` None).
+    """
+    own = workers is None
+    workers = workers or Workers(1, progress=progress)
+    try:
+        if workers.workers > 1 or workers.ray_address is not None:
+            # Prepare the database's cached index and features once, before the workers open it.
+            open_database(run.build_dir, DatabaseConfig(prior="none"))
+        n_frames = read_run_meta(Path(run.build_dir) / "query")["n_frames"]
+        frames = [int(i) for i in query_subset(n_frames, run.n_queries)]
+        setup = QuerySetup(Path(run.build_dir), run.backbone, dict(run.backbone_options), run.seed)
+        first = (run.config, frames, max_depth, max_points)
+        (start,) = workers.map(setup, _start_task, [first], desc="ground anchor")
+        rest = frames[len(start.frames) :]
+        size = 1 if workers.workers == 1 else max(1, -(-len(rest) // (4 * workers.workers)))
+        chunks = [(start, rest[k : k + size], max_depth, max_points) for k in range(0, len(rest), size)]
+        done = workers.map(setup, _frames_task, chunks, desc="perceiving queries")
+    finally:
+        if own:
+            workers.close()
+    return [*start.frames, *(frame for chunk in done for frame in chunk)]
 
 
 def query_records(run: QueryRun, **kwargs: Any) -> list[FrameRecord]:

@@ -31,11 +31,22 @@ from vgpnav_env.eval.perception_runs import (
     localization_metrics,
     pose_errors,
 )
-from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.eval.report import (
+    RunClock,
+    markdown_table,
+    plot_cdf,
+    print_headline,
+    run_settings,
+    write_report,
+)
+from vgpnav_env.eval.workers import Workers, workers_from_args
 from vgpnav_env.runs import load_build
 
-#: One scene's evaluation: (metrics incl. ``records``, figures by file name) of a query run.
-Evaluate = Callable[[QueryRun], tuple[dict[str, Any], dict[str, Figure]]]
+#: One scene's evaluation: (metrics incl. ``records``, figures by file name) of a query run, its
+#: frames perceived by the given workers.
+Evaluate = Callable[[QueryRun, Workers], tuple[dict[str, Any], dict[str, Figure]]]
+#: One scene's headline (printed by the command) from the scene name and its metrics.
+Headline = Callable[[str, dict[str, Any]], str]
 
 
 def time_metrics(records: Sequence[FrameRecord]) -> dict[str, float]:
@@ -52,21 +63,14 @@ def error_cdf_figure(records: Sequence[FrameRecord], title: str = "") -> Figure:
     dashed lines mark the recall and gross-error thresholds."""
     fig = Figure(figsize=(9, 3.4))
     axes = fig.subplots(1, 2)
-    n = max(len(records), 1)
     for ax, key, unit, marks in (
         (axes[0], "translation_m", "m", (0.05, 0.25, 0.5)),
         (axes[1], "rotation_deg", "deg", (2.0, 5.0, 10.0)),
     ):
-        e = np.sort(np.array([getattr(r, key) for r in records], float))
-        e = e[np.isfinite(e)]
-        if len(e):
-            ax.step(np.maximum(e, 1e-4), np.arange(1, len(e) + 1) / n, where="post")
-            ax.set_xscale("log")
+        plot_cdf(ax, [getattr(r, key) for r in records], total=len(records))
         for m in marks:
             ax.axvline(m, color="grey", lw=0.6, ls="--")
         ax.set_xlabel(f"{key.split('_')[0]} error ({unit})")
-        ax.set_ylim(0, 1)
-        ax.grid(alpha=0.3)
     axes[0].set_ylabel("fraction of queries")
     fig.suptitle(title)
     fig.tight_layout()
@@ -174,11 +178,13 @@ def scene_report(
     metrics: dict[str, Any],
     sections: Sequence[str],
     figures: dict[str, Figure],
+    run_info: dict[str, Any] | None = None,
 ) -> None:
-    """Write one scene's report: metrics (with ``records``), settings, lost reasons, the given
-    sections, the per-frame table and the figures plus the error CDF and the worst frames."""
+    """Write one scene's report: settings (``run_info``: where it ran, wall and CPU time, see
+    :func:`~vgpnav_env.eval.report.run_settings`), metrics (with ``records``), lost reasons, the
+    given sections, the per-frame table and the figures plus the error CDF and the worst frames."""
     records = [FrameRecord(**r) for r in metrics["records"]]
-    settings = {"scene": scene, **run.settings()}
+    settings = {"scene": scene, **run.settings(), **(run_info or {})}
     figures = {
         **figures,
         "errors.png": error_cdf_figure(records, f"{scene}: {run.backbone}, k = {run.config.retrieval.k}"),
@@ -186,7 +192,6 @@ def scene_report(
         "confidence.png": confidence_figure(records, f"{scene}: confidence of the verified poses"),
     }
     parts = [
-        "## Settings\n\n" + markdown_table(["setting", "value"], list(settings.items())),
         lost_table(metrics),
         *sections,
         "Recalls and `retrieval_recall` count every query (a lost one fails); median / mean errors "
@@ -196,7 +201,7 @@ def scene_report(
         "every verified pose (kept or rejected) as a test of right (not gross) against gross.",
         frame_table(records),
     ]
-    write_report(out, f"{title}: {scene}", {**metrics, "settings": settings}, parts, figures)
+    write_report(out, f"{title}: {scene}", metrics, parts, figures, settings=settings)
 
 
 def run_scenes(
@@ -204,15 +209,18 @@ def run_scenes(
     title: str,
     evaluate: Evaluate,
     columns: Sequence[str],
+    headline: Headline,
     sections: Callable[[dict[str, Any]], list[str]] = lambda metrics: [],
     *,
     scale: bool = True,
 ) -> int:
-    """Evaluate every scene of ``args.scene`` (a list) and write the reports (module docstring).
+    """Evaluate every scene of ``args.scene`` (a list) on the workers of ``--workers`` / ``--ray``,
+    write the reports (module docstring) and print each scene's headline and report path.
 
     ``columns``: the metric keys of the table across scenes; ``sections``: extra Markdown of one
     scene's report from its metrics. Arguments are checked and every build resolved before the
     first scene runs."""
+    workers = workers_from_args(args)
     scenes = list(args.scene)
     builds = list(args.build) if args.build is not None else [None] * len(scenes)
     if len(builds) != len(scenes):
@@ -224,24 +232,28 @@ def run_scenes(
         for scene, build in zip(scenes, builds, strict=True)
     ]
     summary: dict[str, dict[str, Any]] = {}
-    for scene, run in runs:
-        out = args.out if len(runs) == 1 else args.out / re.sub(r"[^A-Za-z0-9_.-]+", "-", scene)
-        metrics, figures = evaluate(run)
-        scene_report(out, title, scene, run, metrics, sections(metrics), figures)
-        summary[scene] = {k: metrics[k] for k in columns} | {"report": str(out / "report.md")}
+    total = RunClock()
+    with workers:
+        for scene, run in runs:
+            out = args.out if len(runs) == 1 else args.out / re.sub(r"[^A-Za-z0-9_.-]+", "-", scene)
+            clock, cpu0 = RunClock(), workers.cpu_seconds
+            metrics, figures = evaluate(run, workers)
+            info = run_settings(clock, workers.where, workers.cpu_seconds - cpu0)
+            scene_report(out, title, scene, run, metrics, sections(metrics), figures, info)
+            summary[scene] = {k: metrics[k] for k in columns} | {"report": str(out / "report.md")}
+            print_headline(headline(scene, metrics), out)
     if len(runs) > 1:
         rows = [(scene, *(m[k] for k in columns)) for scene, m in summary.items()]
         table = markdown_table(["scene", *columns], [[_cell(v) for v in row] for row in rows])
         settings = {k: v for k, v in runs[0][1].settings().items() if k != "build"}
+        settings |= run_settings(total, workers.where, workers.cpu_seconds)
         parts = [
-            "## Settings\n\n" + markdown_table(["setting", "value"], list(settings.items())),
             "## Scenes\n\n" + table,
             "One report per scene: "
             + ", ".join(f"[{s}]({Path(m['report']).parent.name}/report.md)" for s, m in summary.items()),
         ]
-        write_report(
-            args.out, f"{title}: {len(runs)} scenes", {"scenes": summary, "settings": settings}, parts
-        )
+        write_report(args.out, f"{title}: {len(runs)} scenes", {"scenes": summary}, parts, settings=settings)
+        print_headline(f"{title}: {len(runs)} scenes side by side", args.out)
     return 0
 
 

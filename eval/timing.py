@@ -2,23 +2,23 @@
 
 ``vgpnav eval timing SCENE --backbone B [--queries N] [--k 10] --out DIR [--build DIR]``
 
-Runs the pipeline over ``N`` evenly spaced query frames (the first frame warms up caches and
-is not timed) and reports, over the frames that localized (all frames if none did; a lost frame
-skips the later stages), per stage (retrieval, backbone, motion_averaging, scale_recovery,
-occupancy, total) the median wall seconds (``seconds_per_frame``, with the 90th percentile) and
-the median CPU seconds of the process over all its threads (``cpu_seconds_per_module``; the
-whole call: ``cpu_seconds_per_frame``) beside the paper's figures (VGGT on an RTX 5090), plus the
-backbone's own breakdown when it reports one (``backbone_seconds``, wall and ``*_cpu``).
-Wall time is what a robot waits; it drops below the CPU time when the backbone's threads run on
-several free cores and rises above it when other processes share the cores (the report records
-the CPU count and the load average). CPU seconds are less sensitive to that load.
+Runs the pipeline in this one process (parallel workers would time their sharing of the cores) over
+``N`` evenly spaced query frames (the first frame warms up caches and is not timed) and reports,
+over the frames that localized (all frames if none did; a lost frame skips the later stages), per
+stage (retrieval, backbone, motion_averaging, scale_recovery, occupancy, total) the median wall
+seconds (``seconds_per_frame``, with the 90th percentile) and the median CPU seconds of the process
+over all its threads (``cpu_seconds_per_module``; the whole call: ``cpu_seconds_per_frame``) beside
+the paper's figures (VGGT on an RTX 5090), plus the backbone's own breakdown when it reports one
+(``backbone_seconds``, wall and ``*_cpu``). Wall time is what a robot waits; it drops below the CPU
+time when the backbone's threads run on several free cores and rises above it when other processes
+share the cores (the report records the CPU count and the load average). CPU seconds are less
+sensitive to that load.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,7 @@ from vgpnav_env.eval.perception_runs import (
     add_scene_arguments,
     query_records,
 )
-from vgpnav_env.eval.report import markdown_table, write_report
+from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
 from vgpnav_env.perception.pipeline import TIMING_KEYS
 
 #: Paper Table VI, seconds per frame (VGGT backbone, RTX 5090); verification and occupancy are not
@@ -100,7 +100,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    metrics = evaluate_timing(QueryRun.from_args(args))
+    clock = RunClock()
+    query_run = QueryRun.from_args(args)
+    metrics = evaluate_timing(query_run)
+    settings = {"scene": args.scene, **query_run.settings(), **run_settings(clock)}
     wall, p90, cpu = metrics["seconds_per_frame"], metrics["seconds_p90"], metrics["cpu_seconds_per_module"]
     rows = [(k, wall[k], p90[k], cpu[k], PAPER_SECONDS[k]) for k in TIMING_KEYS]
     breakdown = metrics["backbone_seconds"]
@@ -122,9 +125,11 @@ def run(args: argparse.Namespace) -> int:
             [(k, breakdown[k], breakdown.get(f"{k}_cpu", float("nan"))) for k in steps],
         ),
     ]
-    write_report(args.out, "Per-module timing", metrics, sections, {"timing.png": timing_figure(metrics)})
-    print(
+    figures = {"timing.png": timing_figure(metrics)}
+    write_report(args.out, "Per-module timing", metrics, sections, figures, settings=settings)
+    print_headline(
         f"perception per frame: {wall['total']:.3f} s wall, {metrics['cpu_seconds_per_frame']:.3f} CPU s "
-        f"(paper: {PAPER_SECONDS['total']:.3f} s on an RTX 5090)\nreport: {Path(args.out) / 'report.md'}"
+        f"(paper: {PAPER_SECONDS['total']:.3f} s on an RTX 5090)",
+        args.out,
     )
     return 0

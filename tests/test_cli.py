@@ -168,3 +168,70 @@ def test_unimportable_command_is_one_line(
     monkeypatch.setitem(cli.COMMANDS, "eval missing", ("vgpnav_env.eval.no_such_module", "not written yet"))
     code, _, err = _run(["eval", "missing"], capsys)
     assert code == 2 and "command 'eval missing' is unavailable" in _one_error_line(err)
+
+
+QUERY_PROTOCOLS = ("localization", "perception", "timing", "ablations")
+#: (command line, a phrase the one error line must hold); MISSING / EMPTY are replaced by a missing
+#: path and an empty directory; every line gets ``--out OUT``.
+BAD_INPUTS = [
+    ("build home --size 0x240", "--size"),
+    ("build home --seed -1", "seed must be a non-negative integer"),
+    ("build home --texture shiny", "'shiny'"),
+    ("build nosuchscene", "'nosuchscene'"),
+    *((f"eval {p} home --k 0", "--k: must be a positive integer") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --queries -1", "--queries: must be a non-negative integer") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} nosuchscene", "'nosuchscene'") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --build MISSING", "no such build directory") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --build EMPTY", "summary.json") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --backbone nope", "invalid choice: 'nope'") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --backbone learned", "needs --model") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --model m:f", "for --backbone learned") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --size 10", "--size") for p in QUERY_PROTOCOLS),
+    *((f"eval {p} home --workers 0", "--workers: must be a positive integer") for p in QUERY_PROTOCOLS[:2]),
+    ("eval ablations home --workers 0", "--workers: must be a positive integer"),
+    ("eval localization home --retrieval nope", "invalid choice: 'nope'"),
+    ("eval localization home --averaging nope", "invalid choice: 'nope'"),
+    ("eval navigation home --agent greedy", "unknown agent 'greedy'; allowed: astar, oracle, ppo:PATH"),
+    ("eval navigation home --agent ppo:MISSING", "no PPO model"),
+    ("eval navigation home --agent ppo", "needs a path"),
+    ("eval navigation home --agent oracle:x", "takes no path"),
+    ("eval navigation home --episodes 0", "--episodes: must be a positive integer"),
+    ("eval navigation home --max-steps 0", "--max-steps: must be a positive integer"),
+    ("eval navigation home --workers 0", "--workers: must be a positive integer"),
+    ("eval navigation home --backbone nope", "invalid choice: 'nope'"),
+    ("eval navigation home --seed -2", "seed must be a non-negative integer"),
+    ("eval navigation nosuchscene --agent oracle", "'nosuchscene'"),
+    ("eval navigation home --database MISSING", "no such build directory"),
+    ("train ppo home --steps 0", "--steps: must be a positive integer"),
+    ("train ppo home --envs 0", "--envs: must be a positive integer"),
+    ("train ppo nosuchscene --steps 10", "'nosuchscene'"),
+    ("train ppo home --backbone learned", "PPO trains with --backbone classical or simulated"),
+    ("train ppo home --backbone simulated --database MISSING", "no such build directory"),
+    ("report MISSING", "no report.json"),
+    ("report EMPTY", "no report.json"),
+]
+
+
+@pytest.mark.parametrize(("line", "phrase"), BAD_INPUTS, ids=[line for line, _ in BAD_INPUTS])
+def test_every_command_refuses_bad_input_in_one_line_and_writes_nothing(
+    line: str,
+    phrase: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    cache, empty, out = tmp_path / "cache", tmp_path / "empty", tmp_path / "out"
+    monkeypatch.setenv("VGPNAV_CACHE", str(cache))
+    empty.mkdir()
+    words = line.replace("MISSING", str(tmp_path / "missing")).replace("EMPTY", str(empty)).split()
+    code, stdout, err = _run([*words, "--out", str(out)], capsys)
+    assert code == 2, err
+    assert phrase in _one_error_line(err)
+    assert stdout == ""
+    assert not out.exists() and not cache.exists() and list(empty.iterdir()) == []
+
+
+def test_every_command_is_in_the_bad_input_table() -> None:
+    tested = {" ".join(line.split()[:2]) if line.startswith(("eval", "train")) else line.split()[0]
+              for line, _ in BAD_INPUTS}  # fmt: skip
+    assert tested == set(cli.COMMANDS)

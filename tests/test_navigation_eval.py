@@ -7,7 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from vgpnav_env.eval.navigation import EpisodeRecord, evaluate_navigation, make_agent, summarize
+from vgpnav_env.eval.navigation import (
+    EpisodeRecord,
+    classify_failure,
+    evaluate_navigation,
+    plan_agent,
+    summarize,
+)
 
 
 def test_oracle_report_json_markdown_and_pictures(tmp_path):
@@ -38,41 +44,72 @@ def test_oracle_report_json_markdown_and_pictures(tmp_path):
     assert len(pngs) == 3 and all(p.stat().st_size > 1000 for p in pngs)
 
 
-def test_cli_eval_navigation_writes_report(tmp_path):
+SETTINGS = (
+    "scene",
+    "layout",
+    "image size",
+    "backbone",
+    "perception mode",
+    "max steps",
+    "success radius (m)",
+    "seeds",
+    "wall time (s)",
+    "CPU (s)",
+    "package version",
+)
+
+
+def test_cli_prints_headline_writes_settings_first_and_runs_compare_side_by_side(tmp_path, capsys):
     from vgpnav_env.cli import main
 
-    out = tmp_path / "cli"
-    code = main(
-        [
-            "eval",
-            "navigation",
-            "home",
-            "--agent",
-            "oracle",
-            "--episodes",
-            "2",
-            "--size",
-            "64x48",
-            "--out",
-            str(out),
-        ]
-    )
-    assert code == 0
-    assert json.loads((out / "report.json").read_text())["episodes"] == 2
+    outs = [tmp_path / "seed0", tmp_path / "seed4"]
+    for out, seed in zip(outs, ("0", "4"), strict=True):
+        argv = ["eval", "navigation", "home", "--agent", "oracle", "--episodes", "2", "--size", "64x48",
+                "--max-steps", "300", "--seed", seed, "--workers", "1", "--out", str(out)]  # fmt: skip
+        assert main(argv) == 0
+        lines = capsys.readouterr().out.strip().splitlines()
+        assert lines[0].startswith("navigation home (oracle): success ") and "SPL" in lines[0]
+        assert lines[-1] == f"report: {out / 'report.md'}"
+        saved = json.loads((out / "report.json").read_text())
+        assert saved["episodes"] == 2 and set(SETTINGS) <= set(saved["settings"])
+        assert (
+            saved["settings"]["max steps"] == 300 and saved["settings"]["seeds"] == f"{seed}-{int(seed) + 1}"
+        )
+        assert saved["settings"]["CPU (s)"] > 0 and set(saved["labels"]) == {
+            "lost", "mislocalized", "stopped-too-far", "timeout"}  # fmt: skip
+        md = (out / "report.md").read_text()
+        assert md.index("## Settings") < md.index("## Labels") < md.index("success_rate")
+        assert "| max steps | 300 |" in md and "| success radius (m) | 0.5 |" in md
+    assert main(["report", *map(str, outs), "--out", str(tmp_path / "both")]) == 0
+    assert capsys.readouterr().out.strip().endswith(f"report: {tmp_path / 'both' / 'report.md'}")
+    md = (tmp_path / "both" / "report.md").read_text()
+    assert "|  | seed0 | seed4 |" in md and "| success_rate |" in md and "| seeds | 0-1 | 4-5 |" in md
+    assert (tmp_path / "both" / "comparison.png").stat().st_size > 5000
 
 
 def test_bad_agent_names_are_rejected(tmp_path, capsys):
     from vgpnav_env.cli import main
 
     with pytest.raises(ValueError, match="allowed: astar, oracle, ppo:PATH"):
-        make_agent("greedy", "classical")
+        plan_agent("greedy", "classical")
     with pytest.raises(FileNotFoundError):
-        make_agent(f"ppo:{tmp_path / 'missing'}", "classical")
-    code = main(["eval", "navigation", "home", "--agent", "greedy", "--out", str(tmp_path / "x")])
-    assert code == 2 and "unknown agent" in capsys.readouterr().err
+        plan_agent(f"ppo:{tmp_path / 'missing'}", "classical")
+    for agent, message in (
+        ("greedy", "unknown agent"),
+        ("ppo:/missing.zip", "no PPO model"),
+        ("ppo", "needs a path"),
+    ):
+        out = tmp_path / "x"
+        with pytest.raises(SystemExit) as e:
+            main(["eval", "navigation", "home", "--agent", agent, "--out", str(out)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 1 and message in err[0], err
+        assert not out.exists()
 
 
-def _record(success: bool, failure: str | None, loc: float | None = None) -> EpisodeRecord:
+def _record(
+    success: bool, failure: str | None, loc: float | None = None, frames: dict | None = None
+) -> EpisodeRecord:
     metrics = {
         "success": success,
         "spl": 0.8 * success,
@@ -94,14 +131,20 @@ def _record(success: bool, failure: str | None, loc: float | None = None) -> Epi
         failure=failure,
         metrics=metrics,
         trajectory=[],
+        frames=frames or {},
     )
 
 
 def test_summary_aggregates_and_counts_failures():
-    s = summarize([_record(True, None, 0.1), _record(False, "timeout", 0.3), _record(False, "lost")])
+    frames = {"localization_error_m": [0.0] * 19 + [1.0], "localized": [True] * 20}
+    s = summarize(
+        [_record(True, None, 0.1, frames), _record(False, "timeout", 0.3, frames), _record(False, "lost")]
+    )
     assert s["success_rate"] == pytest.approx(1 / 3) and s["spl"] == pytest.approx(0.8 / 3)
     assert s["mean_localization_error_m"] == pytest.approx(0.2)
-    assert s["failures"] == {"timeout": 1, "stopped-too-far": 0, "lost": 1}
+    # 95th percentile over all 40 frames (two of them 1.0 m off), not over episodes.
+    assert s["p95_localization_error_m"] == pytest.approx(np.percentile([0.0] * 38 + [1.0] * 2, 95))
+    assert s["failures"] == {"lost": 1, "mislocalized": 0, "stopped-too-far": 0, "timeout": 1}
     assert s["collisions_per_episode"] == 1.0 and np.isfinite(s["soft_spl"])
     assert list(s) == [
         "episodes",
@@ -111,8 +154,28 @@ def test_summary_aggregates_and_counts_failures():
         "collisions_per_episode",
         "mean_steps",
         "mean_localization_error_m",
+        "p95_localization_error_m",
+        "mean_lost_fraction",
         "failures",
     ]
+
+
+@pytest.mark.parametrize(
+    ("errors", "localized", "stopped", "label"),
+    [
+        ([0.01] * 10, [False] * 10, False, "lost"),  # never localized
+        ([0.01] * 10, [True] + [False] * 9, False, "timeout"),  # lost 90% of frames, pose still right
+        ([0.01] * 10, [True] + [False] * 9, True, "stopped-too-far"),
+        ([0.01] * 9 + [0.8], [True] * 10, False, "mislocalized"),  # wrong at the end
+        ([0.8] * 5 + [0.01] * 5, [True] * 10, True, "mislocalized"),  # wrong on half of the frames
+        ([0.8] * 4 + [0.01] * 6, [True] * 10, True, "stopped-too-far"),
+        ([], [], False, "timeout"),  # no estimate (the oracle)
+    ],
+)
+def test_failure_labels_say_what_happened(errors, localized, stopped, label):
+    frames = {"localization_error_m": errors, "localized": localized} if errors else {}
+    assert classify_failure({"success": False}, frames, stopped, success_distance=0.5) == label
+    assert classify_failure({"success": True}, frames, stopped, success_distance=0.5) is None
 
 
 def test_astar_with_privileged_perception_reports_localization(home_build, tmp_path):

@@ -34,3 +34,23 @@ def seed_arg(text: str) -> int:
     if seed < 0:
         raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {text!r}")
     return seed
+
+
+def _int_at_least(text: str, low: int, what: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = low - 1
+    if value < low:
+        raise argparse.ArgumentTypeError(f"must be {what} integer, got {text!r}")
+    return value
+
+
+def positive_int_arg(text: str) -> int:
+    """argparse type for counts that must be at least 1 (episodes, steps, workers, references)."""
+    return _int_at_least(text, 1, "a positive")
+
+
+def count_arg(text: str) -> int:
+    """argparse type for counts where 0 means "all" (e.g. ``--queries``): non-negative integers."""
+    return _int_at_least(text, 0, "a non-negative")

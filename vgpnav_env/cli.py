@@ -1,4 +1,4 @@
-"""The ``vgpnav`` command line: ``vgpnav build | eval <protocol> | train <algo>``.
+"""The ``vgpnav`` command line: ``vgpnav build | eval <protocol> | train <algo> | report``.
 
 Commands live in their own modules, listed in :data:`COMMANDS` and imported only when invoked
 (so ``vgpnav --help`` stays fast and one broken command cannot break the others). A command
@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "point-goal success rate, SPL and soft SPL of an agent",
     ),
     "train ppo": ("vgpnav_env.agents.ppo", "train PPO (stable-baselines3) on VGP-Nav observations"),
+    "report": ("vgpnav_env.eval.compare", "put several eval runs side by side (tables and plots)"),
 }
 #: One-line help of command groups.
 GROUPS: dict[str, str] = {

@@ -16,9 +16,11 @@ Scopes (what a measure reads):
 
 How a measure appears in evaluations (class attributes): ``record``, its field in an episode
 record (None: not recorded); ``per_frame``, False: the record holds the final value, True: the
-value over the frames the agent acted on (:meth:`Measure.episode_value`, None without frames);
-``summary``, the key of its mean over episodes in a report (None: not summarised); ``column``, its
-header in the report's episode table (None: not shown).
+value over the frames the agent acted on (:meth:`Measure.episode_value`, None without frames)
+and the record also keeps the per-frame values; ``summary``, the key of its mean over episodes in
+a report (None: not summarised); ``frame_p95``, for per-frame measures, the key of the 95th
+percentile over all frames of all episodes (None: not summarised); ``column``, its header in the
+report's episode table (None: not shown).
 
 Units: metres, radians; poses are (x, y, yaw) in W.
 """
@@ -75,6 +77,7 @@ class Measure:
     record: ClassVar[str | None] = None
     per_frame: ClassVar[bool] = False
     summary: ClassVar[str | None] = None
+    frame_p95: ClassVar[str | None] = None
     column: ClassVar[str | None] = None
 
     def __init__(self) -> None:
@@ -298,7 +301,8 @@ class LocalizationError(Measure):
     record = "localization_error_m"
     per_frame = True
     summary = "mean_localization_error_m"
-    column = "loc. err (m)"
+    frame_p95 = "p95_localization_error_m"
+    column = "mean pose err (m)"
 
     def update_metric(self, state: EstimateState, measures: Measurements) -> None:
         self.metric = float(np.linalg.norm(state.estimate[:2] - state.true_pose[:2]))
@@ -313,6 +317,8 @@ class Localized(Measure):
     scope = "estimate"
     record = "lost_fraction"
     per_frame = True
+    summary = "mean_lost_fraction"
+    column = "lost frames"
 
     def update_metric(self, state: EstimateState, measures: Measurements) -> None:
         self.metric = bool(state.localized)

@@ -56,7 +56,7 @@ from vgpnav_env.perception.database import Database, DatabaseConfig, open_databa
 from vgpnav_env.perception.occupancy import LogOddsMap
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
 from vgpnav_env.perception.state import STALL_THRESHOLD, GateConfig, OdometryState, PoseState
-from vgpnav_env.robot import base_pose
+from vgpnav_env.robot import FOVY_DEG, base_pose
 
 logger = logging.getLogger(__name__)
 
@@ -66,24 +66,20 @@ POSE_MARGIN_M = 5.0
 MOTION_GATE = astuple(GateConfig())
 
 
-def scene_database_dir(env: gym.Env, seed: int = 0, progress: bool = False) -> Path:
-    """The default build directory of ``env``'s scene at its camera size, built if missing."""
+def scene_database_dir(
+    scene: str,
+    size: tuple[int, int],
+    texture: str = "realistic",
+    fovy_deg: float = FOVY_DEG,
+    seed: int = 0,
+    progress: bool = False,
+) -> Path:
+    """The default build directory of ``scene`` (a scene source name) at camera ``size`` (W, H),
+    built if missing (``vgpnav_env.build.build_runs``)."""
     from vgpnav_env.build import build_runs, default_build_dir
 
-    base = env.unwrapped
-    if base.scene_source is None:
-        raise ValueError("the env was made from a Scene object: pass database_dir= (a build of that scene)")
-    size = (base.camera.width, base.camera.height)
-    out = default_build_dir(base.scene_source, size, seed, base.texture)
-    build_runs(
-        base.scene_source,
-        out,
-        size=size,
-        seed=seed,
-        texture=base.texture,
-        fovy_deg=float(np.degrees(base.camera.fovy)),
-        progress=progress,
-    )
+    out = default_build_dir(scene, tuple(size), seed, texture)
+    build_runs(scene, out, size=tuple(size), seed=seed, texture=texture, fovy_deg=fovy_deg, progress=progress)
     return out
 
 
@@ -93,6 +89,10 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``backbone``: a :class:`Backbone`, or a registry name built by ``make_backbone(backbone,
     database=..., **backbone_options)`` (e.g. ``learned`` with ``model`` and ``weights_path``).
     """
+
+    #: The perception mode (a :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name):
+    #: ``paper``, every frame perceived on its own; between fixes the pose state carries the pose.
+    perception_mode = "paper"
 
     def __init__(
         self,
@@ -145,7 +145,13 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             )
         if database is None:
             if database_dir is None:
-                database_dir = scene_database_dir(env, build_seed)
+                if base.scene_source is None:
+                    raise ValueError(
+                        "the env was made from a Scene object: pass database_dir= (a build of that scene)"
+                    )
+                size = (base.camera.width, base.camera.height)
+                fovy = float(np.degrees(base.camera.fovy))
+                database_dir = scene_database_dir(base.scene_source, size, base.texture, fovy, build_seed)
             database = open_database(database_dir, database_config)
         config = perception_config or PerceptionConfig(camera_height=base.camera_height)
         if isinstance(backbone, str):

@@ -25,6 +25,7 @@ A frame whose pose cannot be estimated gives ``status="lost"`` with a ``reason``
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections.abc import Iterator, Sequence
@@ -95,6 +96,9 @@ TIMING_KEYS = (
     "occupancy",
     "total",
 )
+#: Perception modes (DESIGN.md "Perception modes") -> what they do; the registry every setting and
+#: report names a mode from.
+PERCEPTION_MODES = {"paper": "every frame perceived on its own, as published (ground anchored once)"}
 
 
 @dataclass(frozen=True)
@@ -263,10 +267,11 @@ class Perceiver:
         self.config = config or PerceptionConfig()
         self.reset()
 
-    def reset(self) -> None:
-        """Forget the episode: a fresh map from the prior and no ground anchor."""
+    def reset(self, anchor: GroundAnchor | None = None) -> None:
+        """Forget the episode: a fresh map from the prior and no ground anchor, or a copy of
+        ``anchor`` (e.g. one initialised by another perceiver of the same sequence)."""
         self.map = self.database.new_map(self.config.occupancy)
-        self.anchor = GroundAnchor(self.config.scale)
+        self.anchor = copy.deepcopy(anchor) if anchor is not None else GroundAnchor(self.config.scale)
 
     @property
     def initialized(self) -> bool:

@@ -1,0 +1,162 @@
+"""Pictures of the navigation protocol: one per episode, one across episodes (matplotlib, Agg).
+
+:func:`episode_figure` shows what happened in an episode: the true and estimated trajectories on
+the ground-truth map with lost frames and collisions marked, the fused obstacle map the agent had
+at the end, and the pose error over time with the lost stretches shaded. :func:`summary_figure`:
+the pose-error CDF over all frames of all episodes and the lost fraction of every episode.
+Figures are built with ``matplotlib.figure.Figure`` (no pyplot state), so workers can draw them.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+from matplotlib.figure import Figure
+
+from vgpnav_env.eval.report import plot_cdf
+
+if TYPE_CHECKING:
+    from vgpnav_env.eval.navigation import EpisodeRecord
+
+_TRUE, _ESTIMATE, _LOST, _GOAL, _START = "tab:green", "tab:orange", "tab:red", "tab:purple", "tab:cyan"
+
+
+def _ground_truth_panel(ax: Any, env: gym.Env, record: EpisodeRecord) -> None:
+    base = env.unwrapped
+    gt, spec = base.ground_truth, base.ground_truth.spec
+    img = np.full(spec.shape, 0.15)
+    img[gt.free] = 0.75
+    img[base.world.navigable] = 1.0
+    img[gt.obstacle] = 0.4
+    (x0, y0), (x1, y1) = spec.bounds
+    ax.imshow(
+        img, cmap="gray", vmin=0, vmax=1, origin="lower", extent=(x0, x1, y0, y1), interpolation="nearest"
+    )
+    traj = np.asarray(record.trajectory)
+    ax.plot(traj[:, 0], traj[:, 1], "-", color=_TRUE, lw=1.5, label="true")
+    if record.estimated_trajectory:
+        est = np.asarray(record.estimated_trajectory)
+        ax.plot(est[:, 0], est[:, 1], "--", color=_ESTIMATE, lw=1.0, label="estimated")
+        lost = ~np.asarray(record.frames.get("localized", [True] * len(est)), bool)
+        if lost.any():
+            ax.plot(est[lost, 0], est[lost, 1], ".", color=_LOST, ms=3, label="lost (odometry)")
+    if record.collision_steps:
+        hits = traj[np.asarray(record.collision_steps) + 1]
+        ax.plot(hits[:, 0], hits[:, 1], "x", color="k", ms=5, label="collision")
+    ax.plot(*record.start[:2], "o", color=_START, label="start")
+    ax.plot(*record.goal, "*", color=_GOAL, ms=12, label="goal")
+    ax.add_patch(_circle(record.goal, base.success_distance))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
+
+
+def _circle(centre: Any, radius: float) -> Any:
+    from matplotlib.patches import Circle
+
+    return Circle(centre, radius, fill=False, ls=":", color=_GOAL)
+
+
+def _fused_map_panel(ax: Any, env: gym.Env, record: EpisodeRecord) -> None:
+    fused = env.get_wrapper_attr("fused_map")
+    img = np.full((*fused.spec.shape, 3), 0.55)
+    img[fused.free()] = 1.0
+    img[fused.occupied()] = (0.8, 0.1, 0.1)
+    (x0, y0), (x1, y1) = fused.spec.bounds
+    ax.imshow(img, origin="lower", extent=(x0, x1, y0, y1), interpolation="nearest")
+    traj = np.asarray(record.trajectory)
+    ax.plot(traj[:, 0], traj[:, 1], "-", color=_TRUE, lw=1.0)
+    ax.plot(*record.goal, "*", color=_GOAL, ms=10)
+    (gx0, gy0), (gx1, gy1) = env.unwrapped.ground_truth.spec.bounds
+    ax.set_xlim(gx0, gx1)
+    ax.set_ylim(gy0, gy1)
+    ax.set_title("fused map at the end (red occupied, white free, grey unknown)", fontsize=8)
+    ax.set_xlabel("x (m)")
+    ax.set_aspect("equal")
+
+
+def _stretches(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, end) index pairs of the runs of True in ``mask`` (end exclusive)."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+
+
+def _error_panel(ax: Any, record: EpisodeRecord, success_distance: float) -> None:
+    errors = np.asarray(record.frames["localization_error_m"], float)
+    lost = ~np.asarray(record.frames.get("localized", [True] * len(errors)), bool)
+    steps = np.arange(len(errors))
+    for a, b in _stretches(lost):
+        ax.axvspan(a - 0.5, b - 0.5, color=_LOST, alpha=0.15, lw=0)
+    ax.plot(steps, errors, "-", color=_ESTIMATE, lw=1.2, label="pose error")
+    ax.axhline(
+        success_distance, color="grey", ls="--", lw=0.8, label=f"success radius {success_distance:g} m"
+    )
+    if record.collision_steps:
+        ax.plot(record.collision_steps, np.zeros(len(record.collision_steps)), "|", color="k", ms=8,
+                label="collision")  # fmt: skip
+    ax.plot([], [], "s", color=_LOST, alpha=0.3, label="lost (shaded)")
+    ax.set_xlabel("step")
+    ax.set_ylabel("horizontal pose error (m)")
+    ax.set_xlim(-0.5, max(len(errors), 1) - 0.5)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
+
+
+def episode_figure(env: gym.Env, record: EpisodeRecord) -> Figure:
+    """The picture of one finished episode in ``env`` (module docstring); agents without a pose
+    estimate get the trajectory panel only."""
+    success_distance = env.unwrapped.success_distance
+    outcome = record.failure or "success"
+    m = record.metrics
+    title = (
+        f"episode {record.index} (seed {record.seed}): {outcome}, SPL {m['spl']:.2f}, {m['steps']} steps, "
+        f"{m['collisions']} collisions"
+    )
+    if not record.frames:
+        fig = Figure(figsize=(7.5, 6))
+        _ground_truth_panel(fig.subplots(), env, record)
+        fig.suptitle(title, fontsize=9)
+        return fig
+    lost = m.get("lost_fraction")
+    title += f"; lost {lost:.0%} of frames, mean pose error {m['localization_error_m']:.2f} m"
+    fig = Figure(figsize=(13, 8.5))
+    grid = fig.add_gridspec(2, 2, height_ratios=(2.2, 1))
+    _ground_truth_panel(fig.add_subplot(grid[0, 0]), env, record)
+    _fused_map_panel(fig.add_subplot(grid[0, 1]), env, record)
+    _error_panel(fig.add_subplot(grid[1, :]), record, success_distance)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def episode_png(env: gym.Env, record: EpisodeRecord) -> bytes:
+    """:func:`episode_figure` as PNG bytes (drawn where the episode ran; written by the caller)."""
+    buffer = io.BytesIO()
+    episode_figure(env, record).savefig(buffer, format="png", dpi=90, bbox_inches="tight")
+    return buffer.getvalue()
+
+
+def summary_figure(records: list[EpisodeRecord], success_distance: float) -> Figure:
+    """Left: CDF of the pose error over all frames of all episodes; right: each episode's lost
+    fraction, green for a success and red for a failure."""
+    fig = Figure(figsize=(10, 3.6))
+    left, right = fig.subplots(1, 2)
+    errors = [e for r in records for e in r.frames.get("localization_error_m", [])]
+    plot_cdf(left, errors)
+    left.axvline(success_distance, color="grey", ls="--", lw=0.8)
+    left.set_xlabel("horizontal pose error (m), all frames")
+    left.set_ylabel("fraction of frames")
+    lost = [r.metrics.get("lost_fraction") or 0.0 for r in records]
+    colours = ["tab:green" if r.failure is None else "tab:red" for r in records]
+    right.bar([r.index for r in records], lost, color=colours)
+    right.set_xlabel("episode (green success, red failure)")
+    right.set_ylabel("lost fraction of frames")
+    right.set_ylim(0, 1)
+    right.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,262 @@
+"""A protocol's independent tasks on this process, on worker processes or on a Ray cluster.
+
+Every evaluation protocol (navigation episodes, query frames, ablation configurations) describes
+its work as
+
+- ``setup``: a picklable zero-argument callable (a frozen dataclass instance or a top-level
+  function) that builds what every task needs -- the env and the agent, or the database, the
+  backbone and the perceiver. It runs **once per worker process** and its result (the worker's
+  *state*) is kept between tasks, so renderers, databases and feature caches are built once per
+  worker, not once per task;
+- ``task(state, item) -> result``: a picklable top-level function; ``item`` and ``result`` are
+  picklable plain data (records, arrays, PNG bytes: a Ray cluster's nodes share no files).
+
+:class:`Workers` runs ``[task(state, item) for item in items]`` and returns the results in the
+order of ``items``, whichever worker ran them:
+
+- ``workers=1`` (and no Ray): in this process, ``setup`` called once per distinct setup;
+- ``workers=N``: a ``concurrent.futures.ProcessPoolExecutor`` of up to N processes (started on
+  demand) with the ``spawn`` context (a GL context or a thread pool does not survive ``fork``);
+  each process builds its state on its first task of a setup;
+- ``ray=ADDRESS``: one Ray task per item (``ray.init(address)``; ``"local"`` starts a local
+  instance with ``workers`` CPUs). Ray reuses its worker processes between tasks, and the state is
+  cached in each of them the same way. Every node needs ``vgpnav-env`` installed and the same
+  builds (database directories) at the same paths.
+
+Identical results: a task's result may depend only on ``setup`` and its ``item`` -- seeds are
+part of the items (episode seeds, per-frame seeds), never a random stream shared across tasks.
+Protocols that carry state along a sequence (the ground anchor of the query-frame protocols)
+compute that state first and pass it in the items (see :mod:`vgpnav_env.eval.perception_runs`).
+
+``Workers.cpu_seconds`` is the CPU time (``time.process_time`` of the worker processes, all their
+threads, setup included) the tasks used outside this process; reports add it to this process's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import logging
+import os
+import pickle
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from multiprocessing import get_context
+from typing import Any, TypeVar
+
+from tqdm import tqdm
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+R = TypeVar("R")
+Setup = Callable[[], Any]
+Task = Callable[[Any, Any], Any]
+
+#: ``--ray`` without an address: start a local Ray instance with ``--workers`` CPUs.
+LOCAL_RAY = "local"
+RAY_MISSING = "--ray needs the optional dependency ray: pip install 'vgpnav-env[distributed]'"
+
+#: The state of this process's current setup: (setup key, state); one at a time.
+_STATE: tuple[str, Any] | None = None
+
+
+def default_workers() -> int:
+    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where unknown)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
+def _close(state: Any) -> None:
+    close = getattr(state, "close", None)
+    if callable(close):
+        close()
+
+
+def _state(key: str, setup: Setup) -> Any:
+    """This process's state for ``setup`` (built on first use; a new setup replaces the old)."""
+    global _STATE
+    if _STATE is None or _STATE[0] != key:
+        if _STATE is not None:
+            _close(_STATE[1])
+            _STATE = None
+        _STATE = (key, setup())
+    return _STATE[1]
+
+
+def _run(key: str, setup: Setup, task: Task, item: Any) -> tuple[Any, float]:
+    """Worker side of one task: (result, CPU seconds this process spent on it, setup included)."""
+    cpu = time.process_time()
+    result = task(_state(key, setup), item)
+    return result, time.process_time() - cpu
+
+
+def _key(setup: Setup) -> str:
+    return hashlib.blake2b(pickle.dumps(setup), digest_size=16).hexdigest()
+
+
+class Workers:
+    """Runs tasks (module docstring) on ``workers`` processes or a Ray cluster; a context manager
+    that shuts the pool (and a Ray instance it started) down on exit.
+
+    ``workers``: processes (1 = this process);
+    ``ray``: a Ray address (``"auto"``, ``"ray://host:10001"``) or :data:`LOCAL_RAY`; ``progress``
+    shows a progress bar per :meth:`map`.
+    """
+
+    def __init__(self, workers: int = 1, ray: str | None = None, progress: bool = True) -> None:
+        if workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.workers = int(workers)
+        self.ray_address = ray
+        self.progress = progress
+        self.cpu_seconds = 0.0
+        self._pool: ProcessPoolExecutor | None = None
+        self._ray: Any = None
+        self._ray_started = False
+        self._local: tuple[str, Any] | None = None
+
+    @property
+    def where(self) -> str:
+        """Where tasks run, for reports: ``"this process"``, ``"N processes"`` or ``"Ray (...)"``."""
+        if self.ray_address is not None:
+            return f"Ray ({self.ray_address})"
+        return "this process" if self.workers == 1 else f"{self.workers} processes"
+
+    def __enter__(self) -> Workers:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._local is not None:
+            _close(self._local[1])
+            self._local = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self._ray_started:
+            self._ray.shutdown()
+            self._ray_started = False
+
+    def map(self, setup: Setup, task: Task, items: Sequence[Any], desc: str | None = None) -> list[Any]:
+        """``[task(state, item) for item in items]`` with one state per worker (module docstring)."""
+        items = list(items)
+        if not items:
+            return []
+        key = _key(setup)
+        bar = tqdm(total=len(items), desc=desc, disable=not self.progress, unit="task")
+        try:
+            if self.ray_address is not None:
+                return self._map_ray(key, setup, task, items, bar)
+            if self.workers == 1:
+                return self._map_here(key, setup, task, items, bar)
+            return self._map_processes(key, setup, task, items, bar)
+        finally:
+            bar.close()
+
+    def _map_here(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+        if self._local is None or self._local[0] != key:
+            if self._local is not None:
+                _close(self._local[1])
+                self._local = None
+            self._local = (key, setup())
+        results = []
+        for item in items:
+            results.append(task(self._local[1], item))
+            bar.update()
+        return results
+
+    def _map_processes(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+        if self._pool is None:  # processes start on demand, at most one per pending task
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"))
+        futures: dict[Future, int] = {
+            self._pool.submit(_run, key, setup, task, x): i for i, x in enumerate(items)
+        }
+        results: list[Any] = [None] * len(items)
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    results[futures[future]], cpu = future.result()
+                    self.cpu_seconds += cpu
+                    bar.update()
+        except BaseException:
+            for future in pending:
+                future.cancel()
+            raise
+        return results
+
+    def _map_ray(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+        ray = self._connect_ray()
+        remote = ray.remote(num_cpus=1)(_run)
+        setup_ref = ray.put(setup)
+        refs = [remote.remote(key, setup_ref, task, x) for x in items]
+        index = {ref: i for i, ref in enumerate(refs)}
+        results: list[Any] = [None] * len(items)
+        pending = list(refs)
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    results[index[ref]], cpu = ray.get(ref)
+                    self.cpu_seconds += cpu
+                    bar.update()
+        except BaseException:
+            for ref in pending:
+                ray.cancel(ref)
+            raise
+        return results
+
+    def _connect_ray(self) -> Any:
+        if self._ray is not None:
+            return self._ray
+        try:
+            import ray
+        except ImportError as e:
+            raise ValueError(RAY_MISSING) from e
+        if not ray.is_initialized():
+            if self.ray_address == LOCAL_RAY:
+                ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False)
+            else:
+                ray.init(address=self.ray_address, log_to_driver=False)
+            self._ray_started = True
+        self._ray = ray
+        return ray
+
+
+def add_worker_arguments(parser: Any) -> None:
+    """``--workers N`` (default: this machine's cores) and ``--ray [ADDRESS]``; read them with
+    :func:`workers_from_args`."""
+    from vgpnav_env.arguments import positive_int_arg
+
+    cores = default_workers()
+    parser.add_argument(
+        "--workers",
+        type=positive_int_arg,
+        default=cores,
+        metavar="N",
+        help=f"processes that run episodes / frames in parallel (default: the machine's cores, {cores})",
+    )
+    parser.add_argument(
+        "--ray",
+        nargs="?",
+        const=LOCAL_RAY,
+        default=None,
+        metavar="ADDRESS",
+        help="run the tasks on a Ray cluster (e.g. auto, ray://host:10001); without ADDRESS a local "
+        "Ray instance with --workers CPUs (needs the extra vgpnav-env[distributed])",
+    )
+
+
+def workers_from_args(args: Any, progress: bool = True) -> Workers:
+    """The :class:`Workers` of ``--workers`` / ``--ray`` (a one-line ValueError for ``--ray``
+    without the ``ray`` package)."""
+    if args.ray is not None and importlib.util.find_spec("ray") is None:
+        raise ValueError(RAY_MISSING)
+    return Workers(args.workers, args.ray, progress=progress)

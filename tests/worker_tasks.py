@@ -1,0 +1,25 @@
+"""Light setups and tasks for the worker tests (spawned workers import this module, so it imports
+nothing heavy)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CountingSetup:
+    """A setup whose state records the process that built it and a fresh token."""
+
+    tag: str
+
+    def __call__(self) -> dict:
+        return {"pid": os.getpid(), "token": os.urandom(8).hex(), "tag": self.tag}
+
+
+def tagged_task(state: dict, item: int) -> tuple[int, int, str, str]:
+    return item * item, state["pid"], state["token"], state["tag"]
+
+
+def failing_task(state: dict, item: int) -> int:
+    raise ValueError(f"bad item {item}")
