@@ -36,4 +36,7 @@ class OracleAgent:
         self.agent.reset()
 
     def act(self, obs: dict[str, Any]) -> Action:
-        return self.agent.act(self.base.pose, self.obstacles, self.spec, obs["goal"])
+        action = self.agent.act(self.base.pose, self.obstacles, self.spec, obs["goal"])
+        if self.agent.path is not None:
+            self.base.set_overlay(path=self.agent.path)  # drawn by render()
+        return action

@@ -106,7 +106,10 @@ class PerceptionAStar:
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
         fused = self.env.get_wrapper_attr("fused_map")
-        return self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal)
+        action = self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal)
+        if self.agent.path is not None:
+            self.env.unwrapped.set_overlay(path=self.agent.path)  # drawn by render()
+        return action
 
 
 @dataclass(frozen=True)

@@ -42,8 +42,9 @@ from vgpnav_env.eval.workers import Workers
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
+from vgpnav_env.perception.motion_averaging import AVERAGING_METHODS
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
-from vgpnav_env.perception.retrieval import nearby_cameras
+from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, nearby_cameras
 from vgpnav_env.perception.scale_recovery import GroundAnchor
 from vgpnav_env.runs import Build, load_build, load_run_depth, read_build_summary, read_run_meta
 
@@ -67,6 +68,7 @@ def add_scene_arguments(
     """``SCENE`` (``several``: one or more, ``args.scene`` is then a list), ``--build``, ``--size``,
     ``--seed``, ``--texture``, ``--out``, ``--queries``."""
     from vgpnav_env.arguments import count_arg, seed_arg, size_arg
+    from vgpnav_env.scenes import TEXTURE_LEVELS
 
     what = "built-in scene name (home, hospital, home:SEED, hospital:SEED) or a scene spec file"
     if several:
@@ -90,7 +92,10 @@ def add_scene_arguments(
     )
     parser.add_argument("--seed", type=seed_arg, default=0, help="trajectory seed of the build (default 0)")
     parser.add_argument(
-        "--texture", default="realistic", help="texture level of the build (default realistic)"
+        "--texture",
+        choices=TEXTURE_LEVELS,
+        default="realistic",
+        help="texture level of the build (default realistic)",
     )
     parser.add_argument("--out", type=Path, required=True, help="report directory")
     parser.add_argument(
@@ -134,12 +139,8 @@ def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     """``--backbone`` (with ``--model`` / ``--weights``), ``--retrieval``, ``--averaging``, ``--k``."""
     add_backbone_arguments(parser)
-    parser.add_argument(
-        "--retrieval", choices=("geometry", "topk"), default="geometry", help="default geometry"
-    )
-    parser.add_argument(
-        "--averaging", choices=("weighted", "single"), default="weighted", help="default weighted"
-    )
+    parser.add_argument("--retrieval", choices=RETRIEVAL_METHODS, default="geometry", help="default geometry")
+    parser.add_argument("--averaging", choices=AVERAGING_METHODS, default="weighted", help="default weighted")
     parser.add_argument("--k", type=positive_int_arg, default=10, help="number of references (default 10)")
 
 

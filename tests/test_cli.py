@@ -191,6 +191,7 @@ BAD_INPUTS = [
     ("eval ablations home --workers 0", "--workers: must be a positive integer"),
     ("eval localization home --retrieval nope", "invalid choice: 'nope'"),
     ("eval localization home --averaging nope", "invalid choice: 'nope'"),
+    ("eval perception home --texture shiny", "invalid choice: 'shiny'"),
     ("eval navigation home --agent greedy", "unknown agent 'greedy'; allowed: astar, oracle, ppo:PATH"),
     ("eval navigation home --agent ppo:MISSING", "no PPO model"),
     ("eval navigation home --agent ppo", "needs a path"),

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from vgpnav_env.envs.body import PlanarRobot, add_robot
+from vgpnav_env.envs.topdown import LEGEND, legend_panel, text_panel
 from vgpnav_env.geometry import camera_yaw_pitch
 from vgpnav_env.robot import arc_path, straight_path, turn_path
 from vgpnav_env.scenes.model import build_mjspec
@@ -223,6 +224,30 @@ def test_render_shows_view_and_top_down_map_with_overlay(room_env):
     base = room_env.unwrapped.top_down(200)
     room_env.unwrapped.set_overlay(estimated_pose=(2.0, 2.0, 0.0), path=[(0.5, 0.5), (3.5, 4.5)])
     assert (room_env.unwrapped.top_down(200) != base).any(axis=-1).sum() > 50
+
+
+def test_render_has_a_status_line_and_a_legend(room_env):
+    env = room_env.unwrapped
+    env.reset(seed=1)
+    assert env.status_line().startswith("step 0/") and "action: none yet" in env.status_line()
+    assert "true pose (no perception)" in env.status_line()
+    bare = env.render()
+    env.step(2)  # turn left
+    pose = env.pose
+    env.set_overlay(estimated_pose=pose + [0.3, 0.4, 0.0], localized=False)
+    line = env.status_line()
+    assert "step 1/" in line and "action: turn left" in line
+    assert "LOST (odometry), pose error 0.50 m" in line
+    assert f"goal {env.measurements['distance_to_goal'].metric:.2f} m" in line and "collisions 0" in line
+    env.set_overlay(localized=True)
+    assert "localized, pose error 0.50 m" in env.status_line()
+    frame = env.render()
+    width = frame.shape[1]
+    strips = frame[-(text_panel(["x"], width).shape[0] + legend_panel(width).shape[0]) :]
+    assert frame.shape == bare.shape and len(strips) > 40  # strips under the pictures
+    assert (strips == (35, 35, 35)).all(axis=-1).mean() > 0.5  # dark panel ...
+    for _, colour, _ in LEGEND:  # ... with every legend swatch in it
+        assert (strips == colour).all(axis=-1).any(), colour
 
 
 def test_home_episodes_respect_distance_range(home_env):

@@ -274,6 +274,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             **self.measurements.metrics(),
         )
         self.env.unwrapped.set_overlay(
-            estimated_pose=estimate, obstacles=occupancy.spec.cell_to_world(np.argwhere(obstacles))
+            estimated_pose=estimate,
+            obstacles=occupancy.spec.cell_to_world(np.argwhere(obstacles)),
+            localized=localized,
         )
         return new_obs, info

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from vgpnav_env.envs.body import PlanarRobot, add_robot
 from vgpnav_env.envs.episodes import Episode, GeodesicField, sample_episode
-from vgpnav_env.envs.topdown import TopDownMap
+from vgpnav_env.envs.topdown import TopDownMap, legend_panel, text_panel
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.grid import largest_component, path_length, shortest_path
 from vgpnav_env.groundtruth import GroundTruthMap, ground_truth_map
@@ -139,7 +139,9 @@ class PointGoalEnv(gym.Env):
 
     ## Rendering
     ``render_mode="rgb_array"``: the camera view beside a top-down map (ground-truth map, true
-    pose, start, goal, trajectory, plus what a wrapper or agent set with :meth:`set_overlay`).
+    pose, start, goal, trajectory, plus what a wrapper or agent set with :meth:`set_overlay`),
+    above a status line (step, action, localized or lost, pose error, distance to the goal,
+    collisions) and the map's legend.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
@@ -231,6 +233,8 @@ class PointGoalEnv(gym.Env):
         self._depth: NDArray[np.float32] | None = None
         self._topdown: TopDownMap | None = None
         self._overlay: dict[str, Any] = {}
+        self._localized: bool | None = None
+        self._last_action: Any = None
         self.trajectory: list[NDArray[np.float64]] = []
 
     # -- ground truth for agents that are allowed to see it (oracle) and for evaluation --------
@@ -263,14 +267,18 @@ class PointGoalEnv(gym.Env):
         estimated_pose: ArrayLike | None = None,
         path: ArrayLike | None = None,
         obstacles: ArrayLike | None = None,
+        localized: bool | None = None,
     ) -> None:
         """Extra things to draw on the top-down map until the next ``reset`` (None keeps the old value).
 
-        ``estimated_pose`` (x, y, yaw); ``path`` and ``obstacles`` world (N, 2) points.
+        ``estimated_pose`` (x, y, yaw); ``path`` and ``obstacles`` world (N, 2) points;
+        ``localized``: whether perception localized the frame of ``estimated_pose`` (status line).
         """
         for name, value in (("estimated_pose", estimated_pose), ("path", path), ("obstacles", obstacles)):
             if value is not None:
                 self._overlay[name] = np.asarray(value, float)
+        if localized is not None:
+            self._localized = bool(localized)
 
     # -- episode ----------------------------------------------------------------------------
     def _is_free(self, pose: NDArray[np.float64]) -> bool:
@@ -316,7 +324,7 @@ class PointGoalEnv(gym.Env):
         self._state = EnvState(self.episode, self.robot.pose, None, field, self.success_distance)
         self.measurements.reset(self._state)
         self._done = False
-        self._overlay = {}
+        self._overlay, self._localized, self._last_action = {}, None, None
         self.trajectory = [self.robot.pose]
         return self._observe(), self._info()
 
@@ -361,6 +369,7 @@ class PointGoalEnv(gym.Env):
         if self.episode is None or self._done:
             raise RuntimeError("step() called on a finished episode (or before reset()): call reset() first")
         self._check_action(action)
+        self._last_action = action
         before = self.robot.pose
         stop, blocked = self._move(action)
         after = self.robot.pose
@@ -415,7 +424,37 @@ class PointGoalEnv(gym.Env):
             **self._overlay,
         )
 
+    def _action_text(self) -> str:
+        a = self._last_action
+        if a is None:
+            return "none yet"
+        if self.action_mode == "discrete":
+            return Action(int(a)).name.lower().replace("_", " ")
+        a = np.asarray(a, float)
+        if a[2] > 0.0:
+            return "stop"
+        v, w = a[0] * self.max_linear_speed, np.degrees(a[1] * self.max_angular_speed)
+        return f"v {v:+.2f} m/s, turn {w:+.0f} deg/s"
+
+    def status_line(self) -> str:
+        """What ``render()`` prints under the pictures: step, last action, localization (from the
+        overlay a perception wrapper sets: localized or lost, and the horizontal error of the
+        estimated pose), geodesic distance to the goal and collisions so far."""
+        m = self.measurements
+        parts = [f"step {m['steps'].metric}/{self.max_steps}", f"action: {self._action_text()}"]
+        estimate = self._overlay.get("estimated_pose")
+        if estimate is None:
+            parts.append("true pose (no perception)")
+        else:
+            state = {True: "localized", False: "LOST (odometry)", None: "perception"}[self._localized]
+            error = float(np.linalg.norm(estimate[:2] - self.robot.pose[:2]))
+            parts.append(f"{state}, pose error {error:.2f} m")
+        parts += [f"goal {m['distance_to_goal'].metric:.2f} m", f"collisions {m['collisions'].metric}"]
+        return " | ".join(parts)
+
     def render(self) -> NDArray[np.uint8] | None:
+        """The camera view beside the top-down map, then the status line (:meth:`status_line`) and
+        the map's legend (:data:`~vgpnav_env.envs.topdown.LEGEND`): an RGB uint8 image."""
         if self.render_mode != "rgb_array":
             return None
         if self.episode is None:
@@ -425,7 +464,9 @@ class PointGoalEnv(gym.Env):
             view = self._camera_renderer().render_rgb(self.camera_T_wc())
         k = max(1, int(np.ceil(RENDER_MIN_HEIGHT / view.shape[0])))
         view = np.repeat(np.repeat(view, k, axis=0), k, axis=1)
-        return np.concatenate([view, self.top_down(view.shape[0])], axis=1)
+        top = np.concatenate([view, self.top_down(view.shape[0])], axis=1)
+        width = top.shape[1]
+        return np.concatenate([top, text_panel([self.status_line()], width), legend_panel(width)], axis=0)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -2,7 +2,8 @@
 
 Colours (RGB): obstacles dark grey, free floor light grey, navigable floor white, unknown black;
 fused obstacles red, planned path blue, true pose green, estimated pose orange, goal magenta,
-start cyan, travelled trajectory dark green.
+start cyan, travelled trajectory dark green (:data:`LEGEND`). :func:`legend_panel` draws that
+legend and :func:`text_panel` lines of text, as strips to put under a rendered frame.
 """
 
 from __future__ import annotations
@@ -104,3 +105,59 @@ class TopDownMap:
         if true_pose is not None:
             self._pose(img, true_pose, _TRUE)
         return img
+
+
+#: What the top-down map's colours mean: (label, colour, how it is drawn), in legend order.
+LEGEND: tuple[tuple[str, tuple[int, int, int], str], ...] = (
+    ("true pose", _TRUE, "pose"),
+    ("estimated pose", _ESTIMATE, "pose"),
+    ("goal", _GOAL, "cross"),
+    ("start", _START, "cross"),
+    ("travelled", _TRAJECTORY, "line"),
+    ("planned path", _PATH, "line"),
+    ("fused obstacles", _FUSED, "box"),
+    ("obstacle", _OBSTACLE, "box"),
+    ("navigable", _NAVIGABLE, "box"),
+    ("free (too close to walls)", _FREE, "box"),
+)
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_TEXT = (235, 235, 235)
+_PANEL = (35, 35, 35)
+
+
+def text_panel(lines: list[str], width: int, scale: float = 0.5) -> NDArray[np.uint8]:
+    """A dark strip ``width`` pixels wide with one line of light text per entry of ``lines``."""
+    line_h = round(32 * scale) + 6
+    img = np.empty((line_h * len(lines) + 6, width, 3), np.uint8)
+    img[:] = _PANEL
+    for i, line in enumerate(lines):
+        cv2.putText(img, line, (8, (i + 1) * line_h), _FONT, scale, _TEXT, 1, cv2.LINE_AA)
+    return img
+
+
+def legend_panel(width: int, scale: float = 0.45) -> NDArray[np.uint8]:
+    """The :data:`LEGEND` as swatches with labels, wrapped into rows ``width`` pixels wide."""
+    sw, pad, row_h = round(28 * scale), 8, round(34 * scale) + 6
+    entries, x, row = [], pad, 0
+    for label, colour, kind in LEGEND:
+        w = sw + 6 + cv2.getTextSize(label, _FONT, scale, 1)[0][0] + 3 * pad
+        if x + w > width and x > pad:
+            x, row = pad, row + 1
+        entries.append((x, row, label, colour, kind))
+        x += w
+    img = np.empty(((row + 1) * row_h + pad, width, 3), np.uint8)
+    img[:] = _PANEL
+    for x, r, label, colour, kind in entries:
+        y0 = pad + r * row_h
+        c = (x + sw // 2, y0 + sw // 2)
+        if kind == "box":
+            cv2.rectangle(img, (x, y0), (x + sw, y0 + sw), colour, -1)
+        elif kind == "line":
+            cv2.line(img, (x, c[1]), (x + sw, c[1]), colour, 2, cv2.LINE_AA)
+        elif kind == "cross":
+            cv2.drawMarker(img, c, colour, cv2.MARKER_CROSS, sw, 2)
+        else:
+            cv2.circle(img, c, sw // 2 - 1, colour, 2, cv2.LINE_AA)
+            cv2.line(img, c, (x + sw, c[1]), colour, 2, cv2.LINE_AA)
+        cv2.putText(img, label, (x + sw + 6, y0 + sw - 2), _FONT, scale, _TEXT, 1, cv2.LINE_AA)
+    return img

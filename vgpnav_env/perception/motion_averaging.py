@@ -26,6 +26,9 @@ from scipy.spatial.transform import Rotation
 
 from vgpnav_env.geometry import invert_pose, make_pose
 
+#: Motion-averaging methods: weighted over all references, or one reference (ablation).
+AVERAGING_METHODS = ("weighted", "single")
+
 
 @dataclass(frozen=True)
 class MotionAveragingConfig:
@@ -49,8 +52,8 @@ class MotionAveragingConfig:
     single_reference: Literal["first", "confidence"] = "first"
 
     def __post_init__(self) -> None:
-        if self.method not in ("weighted", "single"):
-            raise ValueError(f"method must be 'weighted' or 'single', got {self.method!r}")
+        if self.method not in AVERAGING_METHODS:
+            raise ValueError(f"method must be one of {AVERAGING_METHODS}, got {self.method!r}")
         if self.robust_loss not in ("cauchy", "huber"):
             raise ValueError(f"robust_loss must be 'cauchy' or 'huber', got {self.robust_loss!r}")
         if self.single_reference not in ("first", "confidence"):

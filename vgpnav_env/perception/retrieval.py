@@ -396,6 +396,10 @@ class VladIndex:
             raise ValueError(f"corrupt VLAD index in {d}: {e}") from e
 
 
+#: Reference selection methods: Alg. 1 (geometry-aware) and plain top-k (ablation).
+RETRIEVAL_METHODS = ("geometry", "topk")
+
+
 @dataclass(frozen=True)
 class RetrievalConfig:
     """Reference selection (paper Alg. 1 defaults).
@@ -417,8 +421,8 @@ class RetrievalConfig:
     def __post_init__(self) -> None:
         if self.k < 1 or self.pool_factor < 1:
             raise ValueError(f"k and pool_factor must be >= 1, got {self.k}, {self.pool_factor}")
-        if self.method not in ("geometry", "topk"):
-            raise ValueError(f"method must be 'geometry' or 'topk', got {self.method!r}")
+        if self.method not in RETRIEVAL_METHODS:
+            raise ValueError(f"method must be one of {RETRIEVAL_METHODS}, got {self.method!r}")
         if not 0.0 <= self.outlier_percentile <= 100.0:
             raise ValueError(f"outlier_percentile must be in [0, 100], got {self.outlier_percentile}")
         if self.l_scale is not None and self.l_scale <= 0:
