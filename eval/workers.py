@@ -17,7 +17,9 @@ order of ``items``, whichever worker ran them:
 - ``workers=1`` (and no Ray): in this process, ``setup`` called once per distinct setup;
 - ``workers=N``: a ``concurrent.futures.ProcessPoolExecutor`` of up to N processes (started on
   demand) with the ``spawn`` context (a GL context or a thread pool does not survive ``fork``);
-  each process builds its state on its first task of a setup;
+  each process builds its state on its first task of a setup. Worker ``i`` runs on the ``i``-th
+  share of this process's cores (CPU affinity, Linux): the backbone's thread pool, OpenCV and
+  OpenMP size themselves by it, so N workers on N cores do not oversubscribe them;
 - ``ray=ADDRESS``: one Ray task per item (``ray.init(address)``; ``"local"`` starts a local
   instance with ``workers`` CPUs). Ray reuses its worker processes between tasks, and the state is
   cached in each of them the same way. Every node needs ``vgpnav-env`` installed and the same
@@ -63,11 +65,10 @@ _STATE: tuple[str, Any] | None = None
 
 
 def default_workers() -> int:
-    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where unknown)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        return os.cpu_count() or 1
+    """The cores this process may run on (the default ``--workers``)."""
+    from vgpnav_env.perception.backbones.threads import available_cores
+
+    return available_cores()
 
 
 def _close(state: Any) -> None:
@@ -92,6 +93,17 @@ def _run(key: str, setup: Setup, task: Task, item: Any) -> tuple[Any, float]:
     cpu = time.process_time()
     result = task(_state(key, setup), item)
     return result, time.process_time() - cpu
+
+
+def _pin(counter: Any, workers: int, cores: tuple[int, ...]) -> None:
+    """Worker process initializer: run on the ``i``-th share of ``cores`` (``i`` counts started
+    workers), so that N single-share workers do not each start thread pools over every core."""
+    with counter.get_lock():
+        i = counter.value
+        counter.value += 1
+    n = min(workers, len(cores))
+    share = cores[i % n :: n]
+    os.sched_setaffinity(0, share)
 
 
 def _key(setup: Setup) -> str:
@@ -173,7 +185,12 @@ class Workers:
 
     def _map_processes(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
         if self._pool is None:  # processes start on demand, at most one per pending task
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"))
+            context = get_context("spawn")
+            pin = {}
+            if hasattr(os, "sched_setaffinity"):
+                cores = tuple(sorted(os.sched_getaffinity(0)))
+                pin = {"initializer": _pin, "initargs": (context.Value("i", 0), self.workers, cores)}
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=context, **pin)
         futures: dict[Future, int] = {
             self._pool.submit(_run, key, setup, task, x): i for i, x in enumerate(items)
         }

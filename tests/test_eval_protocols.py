@@ -146,6 +146,7 @@ def test_ablations_report(build: Path, tmp_path: Path) -> None:
     assert main(args) == 0
     r = report(out)
     assert len(r["table_iv"]) == 4 and len(r["table_v"]) == 4
+    assert (out / "ablations.png").stat().st_size > 5000 and "## Settings" in (out / "report.md").read_text()
     assert [row["paper_translation_cm"] for row in r["table_iv"]] == [11.3, 10.8, 3.4, 3.0]
     assert [row["paper_acc_m"] for row in r["table_v"]] == [1.74, 0.61, 0.09, 0.08]
     full, unscaled = r["table_v"][3], r["table_v"][1]

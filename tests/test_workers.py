@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from tiny_build import make_tiny_build
-from worker_tasks import CountingSetup, failing_task, tagged_task
+from worker_tasks import CountingSetup, affinity_task, failing_task, tagged_task
 
 from vgpnav_env.eval.perception_runs import QueryRun, perceive_queries
 from vgpnav_env.eval.workers import Workers
@@ -33,6 +33,18 @@ def test_results_in_item_order_and_one_state_per_worker(n: int) -> None:
     assert again[0][2] in {tok for t in tokens.values() for tok in t}  # state kept between maps
     assert other[0][3] == "b"  # a new setup replaces the state
     assert (workers.cpu_seconds > 0) == (n > 1)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="CPU affinity is Linux-only")
+def test_each_worker_runs_on_its_share_of_the_cores() -> None:
+    cores = sorted(os.sched_getaffinity(0))
+    with Workers(2, progress=False) as workers:
+        seen = dict(workers.map(CountingSetup("a"), affinity_task, list(range(8))))
+    shares = [set(s) for s in seen.values()]
+    assert all(s <= set(cores) and len(s) >= len(cores) // 2 for s in shares)
+    if len(cores) >= 2 and len(shares) == 2:  # disjoint halves: no core runs two workers' thread pools
+        assert not shares[0] & shares[1] and shares[0] | shares[1] == set(cores)
+    assert sorted(os.sched_getaffinity(0)) == cores  # this process keeps all of them
 
 
 def test_a_task_error_reaches_the_caller() -> None:

@@ -23,3 +23,7 @@ def tagged_task(state: dict, item: int) -> tuple[int, int, str, str]:
 
 def failing_task(state: dict, item: int) -> int:
     raise ValueError(f"bad item {item}")
+
+
+def affinity_task(state: dict, item: int) -> tuple[int, list[int]]:
+    return os.getpid(), sorted(os.sched_getaffinity(0))
