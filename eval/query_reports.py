@@ -25,6 +25,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
+    GROSS_ERROR,
     FrameRecord,
     QueryRun,
     confidence_roc,
@@ -40,6 +41,7 @@ from vgpnav_env.eval.report import (
     write_report,
 )
 from vgpnav_env.eval.workers import Workers, workers_from_args
+from vgpnav_env.perception.pipeline import LOST_REASONS
 from vgpnav_env.runs import load_build
 
 #: One scene's evaluation: (metrics incl. ``records``, figures by file name) of a query run, its
@@ -201,7 +203,10 @@ def scene_report(
         "every verified pose (kept or rejected) as a test of right (not gross) against gross.",
         frame_table(records),
     ]
-    write_report(out, f"{title}: {scene}", metrics, parts, figures, settings=settings)
+    labels = {"localized": "the pipeline returned a verified metric pose"}
+    labels |= {f"lost: {reason}": meaning for reason, meaning in LOST_REASONS.items()}
+    labels["gross"] = "a localized frame more than {:g} m or {:g} deg off the true pose".format(*GROSS_ERROR)
+    write_report(out, f"{title}: {scene}", metrics, parts, figures, settings=settings, labels=labels)
 
 
 def run_scenes(

@@ -20,6 +20,7 @@ from vgpnav_env.eval.perception_runs import (
 )
 from vgpnav_env.eval.query_reports import localization_summary, worst_frames
 from vgpnav_env.geometry import camera_pose
+from vgpnav_env.perception.pipeline import LOST_REASONS
 
 
 @pytest.fixture(scope="module")
@@ -32,12 +33,19 @@ def report(out: Path) -> dict:
     return json.loads((out / "report.json").read_text())
 
 
-def test_localization_report(build: Path, tmp_path: Path) -> None:
+def test_localization_report(build: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "loc"
     code = main(["eval", "localization", "tiny", "--build", str(build), "--backbone", "simulated",
-                 "--queries", "3", "--out", str(out)])  # fmt: skip
+                 "--queries", "3", "--workers", "1", "--out", str(out)])  # fmt: skip
     assert code == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert (
+        lines[0].startswith("localization tiny: 3 queries, lost 0%")
+        and lines[1] == f"report: {out}/report.md"
+    )
     r = report(out)
+    assert set(r["labels"]) >= {f"lost: {reason}" for reason in LOST_REASONS} | {"gross"}
+    assert r["settings"]["query frames"] == "3 of 6" and r["settings"]["workers"] == "this process"
     for key in ("median_translation_m", "mean_translation_m", "median_rotation_deg", "mean_rotation_deg",
                 "recall_5cm_5deg", "recall_25cm_2deg", "recall_50cm_5deg", "n_gross", "gross_rate",
                 "lost_rate", "lost_by_reason", "retrieval_recall", "cpu_s_per_frame", "n_queries",

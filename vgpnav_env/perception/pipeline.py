@@ -74,19 +74,15 @@ from vgpnav_env.robot import CAMERA_HEIGHT
 
 logger = logging.getLogger(__name__)
 
-#: Why a frame is lost: no reference pair passed the backbone; the references' poses disagree
-#: (rotation consensus, ray triangulation, camera height); no metric scale (no ground and no ray
-#: scale); the pose lies outside the caller's :class:`~vgpnav_env.perception.verify.PoseGate`;
-#: the images do not confirm the pose (:func:`~vgpnav_env.perception.verify.verify_pose`:
-#: "unverified"), or confirm a distinct rival pose as well ("ambiguous").
-LOST_REASONS = (
-    "too few matches",
-    "no consensus",
-    "no ground",
-    "inconsistent motion",
-    "unverified",
-    "ambiguous",
-)
+#: Why a frame is lost: reason -> what it means (reports define their labels from it).
+LOST_REASONS: dict[str, str] = {
+    "too few matches": "no reference pair passed the backbone (too few consistent feature matches)",
+    "no consensus": "the references' poses disagree (rotation consensus, ray triangulation, camera height)",
+    "no ground": "no metric scale: no ground plane and no ray-implied scale",
+    "inconsistent motion": "the pose lies outside the caller's odometry gate (PoseGate)",
+    "unverified": "the images do not confirm the pose (verify_pose: epipolar support, gravity, height)",
+    "ambiguous": "the images confirm a distinct rival pose as well (e.g. identical rooms)",
+}
 TIMING_KEYS = (
     "retrieval",
     "backbone",
