@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -34,7 +35,7 @@ from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.arguments import positive_int_arg, seed_arg, size_arg
 from vgpnav_env.eval.perception_runs import add_backbone_arguments, backbone_options
 from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
-from vgpnav_env.eval.workers import Workers, add_worker_arguments, workers_from_args
+from vgpnav_env.eval.workers import Workers, add_worker_arguments, note, workers_from_args
 from vgpnav_env.measures import MEASURES, Measure
 from vgpnav_env.robot import Action
 
@@ -219,18 +220,24 @@ def classify_failure(
     return "stopped-too-far" if stopped else "timeout"
 
 
-def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> EpisodeRecord:
+def run_episode(
+    env: gym.Env,
+    policy: Policy,
+    seed: int,
+    index: int = 0,
+    on_step: Callable[[int], None] | None = None,
+) -> EpisodeRecord:
     """Drive one episode ``reset(seed=seed)`` to its end with ``policy``.
 
     Per-frame measures are collected from ``info`` at every frame the policy acts on; the others
-    give their value at the end of the episode.
+    give their value at the end of the episode. ``on_step(n)`` is called after the n-th step.
     """
     obs, info = env.reset(seed=seed)
     policy.reset()
     frames: dict[str, list[Any]] = {m.uuid: [] for m in _recorded() if m.per_frame}
     estimated: list[list[float]] = []
     collisions: list[int] = []
-    done = False
+    done, steps = False, 0
     while not done:
         if isinstance(obs, dict) and "pose" in obs:
             estimated.append(np.asarray(obs["pose"], float).tolist())
@@ -241,6 +248,9 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, index: int = 0) -> Epis
         if info["blocked"]:
             collisions.append(int(info["steps"]) - 1)
         done = terminated or truncated
+        steps += 1
+        if on_step is not None:
+            on_step(steps)
     metrics: dict[str, Any] = {}
     for m in _recorded():
         values = frames[m.uuid] if m.per_frame else [info[m.uuid]] if m.uuid in info else []
@@ -329,7 +339,7 @@ def episode_task(state: Navigator, item: tuple[int, int]) -> tuple[EpisodeRecord
     from vgpnav_env.eval.navigation_plots import episode_png
 
     index, seed = item
-    record = run_episode(state.env, state.policy, seed, index)
+    record = run_episode(state.env, state.policy, seed, index, lambda n: note(f"episode {index}: step {n}"))
     return record, episode_png(state.env, record) if state.plots else None
 
 

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from vgpnav_env.arguments import positive_int_arg
-from vgpnav_env.eval.workers import Workers
+from vgpnav_env.eval.workers import Workers, note
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
@@ -155,7 +155,7 @@ def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Pat
 
     scene = args.scene if scene is None else scene
     out = default_build_dir(scene, tuple(args.size), args.seed, args.texture)
-    build_runs(scene, out, size=tuple(args.size), seed=args.seed, texture=args.texture, progress=False)
+    build_runs(scene, out, size=tuple(args.size), seed=args.seed, texture=args.texture)
     return out
 
 
@@ -392,7 +392,11 @@ def _frames_task(state: QueryWorker, item: tuple[_Start, list[int], float, int])
     start, frames, max_depth, max_points = item
     perceiver = state.perceiver(start.config)
     perceiver.reset(start.anchor)
-    return [state.perceive(perceiver, i, max_depth, max_points) for i in frames]
+    out = []
+    for i in frames:
+        note(f"frame {i}")
+        out.append(state.perceive(perceiver, i, max_depth, max_points))
+    return out
 
 
 def perceive_queries(

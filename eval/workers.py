@@ -25,6 +25,10 @@ order of ``items``, whichever worker ran them:
   cached in each of them the same way. Every node needs ``vgpnav-env`` installed and the same
   builds (database directories) at the same paths.
 
+A running task may call :func:`note` (e.g. ``"episode 2: step 40"``): the note is shown beside
+its map's progress bar, from this process or from worker processes (through a queue; notes from
+Ray tasks are not shown), so that tasks of a minute or more show what they are doing.
+
 Identical results: a task's result may depend only on ``setup`` and its ``item`` -- seeds are
 part of the items (episode seeds, per-frame seeds), never a random stream shared across tasks.
 Protocols that carry state along a sequence (the ground anchor of the query-frame protocols)
@@ -45,6 +49,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from multiprocessing import get_context
+from queue import Empty
 from typing import Any, TypeVar
 
 from tqdm import tqdm
@@ -62,6 +67,17 @@ RAY_MISSING = "--ray needs the optional dependency ray: pip install 'vgpnav-env[
 
 #: The state of this process's current setup: (setup key, state); one at a time.
 _STATE: tuple[str, Any] | None = None
+#: Where :func:`note` sends a running task's note: (process id, text or None when the task ended).
+_NOTES: Callable[[tuple[int, str | None]], None] | None = None
+#: Seconds between looks at the notes while waiting for worker processes.
+NOTE_POLL_S = 0.5
+
+
+def note(text: str) -> None:
+    """Show ``text`` beside the progress bar of the :meth:`Workers.map` that runs the calling task
+    (a no-op outside one, and on Ray)."""
+    if _NOTES is not None:
+        _NOTES((os.getpid(), text))
 
 
 def default_workers() -> int:
@@ -91,19 +107,47 @@ def _state(key: str, setup: Setup) -> Any:
 def _run(key: str, setup: Setup, task: Task, item: Any) -> tuple[Any, float]:
     """Worker side of one task: (result, CPU seconds this process spent on it, setup included)."""
     cpu = time.process_time()
-    result = task(_state(key, setup), item)
+    try:
+        result = task(_state(key, setup), item)
+    finally:
+        if _NOTES is not None:
+            _NOTES((os.getpid(), None))
     return result, time.process_time() - cpu
 
 
-def _pin(counter: Any, workers: int, cores: tuple[int, ...]) -> None:
-    """Worker process initializer: run on the ``i``-th share of ``cores`` (``i`` counts started
-    workers), so that N single-share workers do not each start thread pools over every core."""
+def _init_worker(notes: Any, counter: Any, workers: int, cores: tuple[int, ...] | None) -> None:
+    """Worker process initializer: send notes to ``notes`` (a queue) and, given ``cores``, run on
+    the ``i``-th share of them (``i`` counts started workers), so that N single-share workers do not
+    each start thread pools over every core."""
+    global _NOTES
+    _NOTES = notes.put
+    if cores is None:
+        return
     with counter.get_lock():
         i = counter.value
         counter.value += 1
     n = min(workers, len(cores))
     share = cores[i % n :: n]
     os.sched_setaffinity(0, share)
+
+
+def _drain(notes: Any) -> list[tuple[int, str | None]]:
+    """The notes waiting in the queue ``notes``."""
+    out = []
+    while True:
+        try:
+            out.append(notes.get_nowait())
+        except Empty:
+            return out
+
+
+def _show_notes(bar: tqdm, notes: dict[int, str], pid: int, text: str | None) -> None:
+    """Record one worker's note (None: its task ended) and show all current ones on ``bar``."""
+    if text is None:
+        notes.pop(pid, None)
+    else:
+        notes[pid] = text
+    bar.set_postfix_str("; ".join(notes[p] for p in sorted(notes)))
 
 
 def _key(setup: Setup) -> str:
@@ -127,6 +171,7 @@ class Workers:
         self.progress = progress
         self.cpu_seconds = 0.0
         self._pool: ProcessPoolExecutor | None = None
+        self._notes: Any = None  # the worker processes' note queue
         self._ray: Any = None
         self._ray_started = False
         self._local: tuple[str, Any] | None = None
@@ -151,6 +196,8 @@ class Workers:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+            self._notes.close()
+            self._notes = None
         if self._ray_started:
             self._ray.shutdown()
             self._ray_started = False
@@ -172,33 +219,47 @@ class Workers:
             bar.close()
 
     def _map_here(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+        global _NOTES
         if self._local is None or self._local[0] != key:
             if self._local is not None:
                 _close(self._local[1])
                 self._local = None
             self._local = (key, setup())
         results = []
-        for item in items:
-            results.append(task(self._local[1], item))
-            bar.update()
+        shown: dict[int, str] = {}
+
+        def show(n: tuple[int, str | None]) -> None:
+            _show_notes(bar, shown, *n)
+
+        _NOTES = show
+        try:
+            for item in items:
+                results.append(task(self._local[1], item))
+                bar.update()
+        finally:
+            _NOTES = None
         return results
 
     def _map_processes(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
         if self._pool is None:  # processes start on demand, at most one per pending task
             context = get_context("spawn")
-            pin = {}
-            if hasattr(os, "sched_setaffinity"):
-                cores = tuple(sorted(os.sched_getaffinity(0)))
-                pin = {"initializer": _pin, "initargs": (context.Value("i", 0), self.workers, cores)}
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=context, **pin)
+            cores = tuple(sorted(os.sched_getaffinity(0))) if hasattr(os, "sched_setaffinity") else None
+            self._notes = context.Queue()
+            init = (self._notes, context.Value("i", 0), self.workers, cores)
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=context, initializer=_init_worker, initargs=init
+            )
         futures: dict[Future, int] = {
             self._pool.submit(_run, key, setup, task, x): i for i, x in enumerate(items)
         }
         results: list[Any] = [None] * len(items)
         pending = set(futures)
+        shown: dict[int, str] = {}
         try:
             while pending:
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                done, pending = wait(pending, timeout=NOTE_POLL_S, return_when=FIRST_COMPLETED)
+                for pid, text in _drain(self._notes):
+                    _show_notes(bar, shown, pid, text)
                 for future in done:
                     results[futures[future]], cpu = future.result()
                     self.cpu_seconds += cpu

@@ -72,7 +72,7 @@ def scene_database_dir(
     texture: str = "realistic",
     fovy_deg: float = FOVY_DEG,
     seed: int = 0,
-    progress: bool = False,
+    progress: bool = True,
 ) -> Path:
     """The default build directory of ``scene`` (a scene source name) at camera ``size`` (W, H),
     built if missing (``vgpnav_env.build.build_runs``)."""
