@@ -140,10 +140,10 @@ def test_failed_build_leaves_previous_build(
     summary = (out / "summary.json").read_text()
     real = build.write_run
 
-    def failing(directory, run, depth=None):
+    def failing(directory, run, depth=None, on_frame=None):
         if run.metadata["kind"] == "query":
             raise OSError("disk full (simulated)")
-        real(directory, run, depth)
+        real(directory, run, depth, on_frame)
 
     monkeypatch.setattr(build, "write_run", failing)
     with pytest.raises(OSError, match="simulated"):  # seed 1: parameters differ, so it rebuilds

@@ -278,8 +278,7 @@ def build_runs(
             for kind, (run, depth) in runs.items():
                 bar.set_description(f"{label}: writing the {kind} run")
                 (tmp / kind).mkdir()
-                write_run(tmp / kind, run, depth)
-                bar.update(len(run))
+                write_run(tmp / kind, run, depth, on_frame=bar.update)
         summary["build_seconds"] = round(time.perf_counter() - t0, 2)
         write_json(tmp / "summary.json", summary)
 

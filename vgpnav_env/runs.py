@@ -193,9 +193,14 @@ def _run_metadata(run: Run) -> dict[str, Any]:
     return meta
 
 
-def write_run(directory: Path, run: Run, depth: NDArray[np.floating] | None = None) -> None:
+def write_run(
+    directory: Path,
+    run: Run,
+    depth: NDArray[np.floating] | None = None,
+    on_frame: Callable[[], None] | None = None,
+) -> None:
     """Write ``run`` (and optional depth (N, H, W)) into an existing empty ``directory`` (not atomic;
-    see :func:`save_run`)."""
+    see :func:`save_run`); ``on_frame()`` is called after each image is written."""
     meta = _run_metadata(run)
     if depth is not None:
         depth = np.asarray(depth)
@@ -208,6 +213,8 @@ def write_run(directory: Path, run: Run, depth: NDArray[np.floating] | None = No
             raise OSError(f"could not encode frame {i} as PNG")
         # Not fsynced (costs ~6 ms per frame): a torn PNG fails to decode, so loading still detects it.
         _write_bytes(directory / "images" / f"{i:06d}.png", png.tobytes(), sync=False)
+        if on_frame is not None:
+            on_frame()
     _write_npy(directory / "poses.npy", run.poses.astype(np.float64))
     cam = run.camera
     write_json(
