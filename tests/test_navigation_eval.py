@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -42,6 +43,19 @@ def test_oracle_report_json_markdown_and_pictures(tmp_path):
     assert "success_rate" in md and "trajectories/episode_000.png" in md
     pngs = sorted((out / "trajectories").glob("*.png"))
     assert len(pngs) == 3 and all(p.stat().st_size > 1000 for p in pngs)
+
+
+def test_progress_shows_the_running_episodes_step_and_changes_nothing(tmp_path, capsys):
+    kwargs = {"agent": "oracle", "episodes": 2, "seed": 5, "size": (64, 48)}
+    quiet = evaluate_navigation("home", progress=False, **kwargs)
+    assert capsys.readouterr().err == ""
+    shown = evaluate_navigation("home", progress=True, **kwargs)
+    err = capsys.readouterr().err
+    assert shown["records"] == quiet["records"]
+    for r in quiet["records"]:  # every step of every episode was shown, up to its last
+        for n in (1, r["steps"]):
+            assert re.search(rf"episode {r['index']}: step {n}\b", err), (n, err[-500:])
+    assert "navigation home oracle" in err and "2/2" in err
 
 
 SETTINGS = (

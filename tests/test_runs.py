@@ -19,6 +19,7 @@ from vgpnav_env.runs import (
     read_run_meta,
     run_fingerprint,
     save_run,
+    write_run,
 )
 
 
@@ -66,6 +67,15 @@ def test_round_trip(tmp_path: Path) -> None:
         "poses.npy",
     ]
     assert not list(tmp_path.glob(".*"))  # no temp directory left behind
+
+
+def test_write_run_reports_each_image_as_it_is_written(tmp_path: Path) -> None:
+    run, depth = make_run(n=5)
+    (tmp_path / "run").mkdir()
+    written = []  # images on disk at each call
+    write_run(tmp_path / "run", run, depth, lambda: written.append(len(list(tmp_path.rglob("*.png")))))
+    assert written == [1, 2, 3, 4, 5]
+    assert np.array_equal(load_run(tmp_path / "run").images, run.images)
 
 
 def test_run_without_depth_and_validation(tmp_path: Path) -> None:

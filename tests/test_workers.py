@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 from tiny_build import make_tiny_build
-from worker_tasks import CountingSetup, affinity_task, failing_task, tagged_task
+from worker_tasks import CountingSetup, affinity_task, failing_task, noting_task, tagged_task
 
 from vgpnav_env.eval.perception_runs import QueryRun, perceive_queries
-from vgpnav_env.eval.workers import Workers
+from vgpnav_env.eval.workers import Workers, note
 
 
 @pytest.mark.parametrize("n", [1, 2])
@@ -52,6 +52,18 @@ def test_a_task_error_reaches_the_caller() -> None:
         workers.map(CountingSetup("a"), failing_task, [1, 2])
     with pytest.raises(ValueError, match="workers must be >= 1"):
         Workers(0)
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_a_running_tasks_note_shows_beside_the_bar(n: int, capsys: pytest.CaptureFixture[str]) -> None:
+    note("outside any map")  # a no-op
+    with Workers(n) as workers:
+        out = workers.map(CountingSetup("a"), noting_task, [1, 2, 3], desc="noting")
+    assert out == [1, 4, 9]  # notes do not change the results
+    err = capsys.readouterr().err
+    assert "noting" in err and "3/3" in err
+    assert all(f"item {i} running" in err for i in (1, 2, 3)), err
+    assert "outside any map" not in err
 
 
 def _comparable(frames) -> list[dict]:

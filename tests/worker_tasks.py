@@ -4,6 +4,7 @@ nothing heavy)."""
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 
 
@@ -27,3 +28,11 @@ def failing_task(state: dict, item: int) -> int:
 
 def affinity_task(state: dict, item: int) -> tuple[int, list[int]]:
     return os.getpid(), sorted(os.sched_getaffinity(0))
+
+
+def noting_task(state: dict, item: int) -> int:
+    from vgpnav_env.eval.workers import note
+
+    note(f"item {item} running")
+    time.sleep(0.3)  # a task that takes a while: the note is sent long before its result
+    return item * item
