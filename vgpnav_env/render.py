@@ -7,6 +7,11 @@ optical axis, ``np.inf`` where nothing is hit.
 
 - ``MujocoRenderer`` (default): one OpenGL context + ``MjrContext`` reused for every frame;
   RGB and depth come from the same draw. Geom group 3 (collision parts, the robot) is hidden.
+  Fork safety: before the process forks (``os.register_at_fork``), every live renderer frees its
+  GL context and MuJoCo's EGL display is terminated (Mesa's llvmpipe threads and locks do not
+  survive ``fork``: a child creating a context would hang); parent and child then recreate their
+  own context on their next draw. So Gymnasium's ``AsyncVectorEnv`` and SB3's ``SubprocVecEnv``
+  may fork after an env rendered in the parent.
 - ``PyrenderRenderer``: pyrender over the scene's trimesh meshes, for mesh scenes whose
   materials MuJoCo cannot show (several or PBR materials); pyrender is imported lazily.
 """
@@ -14,6 +19,9 @@ optical axis, ``np.inf`` where nothing is hit.
 from __future__ import annotations
 
 import logging
+import os
+import sys
+import weakref
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
@@ -118,11 +126,11 @@ class MujocoRenderer(_Closing):
         if data is None:
             mujoco.mj_kinematics(model, self.data)
             mujoco.mj_camlight(model, self.data)  # world light directions; without it lights are dark
-        self._gl = mujoco.GLContext(off[0], off[1])
-        self._gl.make_current()
-        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
-        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._gl: Any = None
+        self._ctx: mujoco.MjrContext | None = None
+        self._closed = False
+        self._open_gl()
+        _LIVE.add(self)
         self._scene = mujoco.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = 0
@@ -134,9 +142,27 @@ class MujocoRenderer(_Closing):
         self._rgb = np.empty((camera.height, camera.width, 3), np.uint8)
         self._zbuf = np.empty((camera.height, camera.width), np.float32)
 
+    def _open_gl(self) -> None:
+        off = (self.model.vis.global_.offwidth, self.model.vis.global_.offheight)
+        self._gl = mujoco.GLContext(off[0], off[1])
+        self._gl.make_current()
+        self._ctx = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+
+    def _free_gl(self) -> None:
+        if self._ctx is not None:
+            self._gl.make_current()
+            self._ctx.free()
+            self._ctx = None
+            self._gl.free()
+            self._gl = None
+
     def _draw(self, T_wc: ArrayLike, data) -> None:
-        if self._ctx is None:
+        if self._closed:
             raise RuntimeError("render called after close()")
+        if self._ctx is None:  # freed before a fork: this process makes its own context
+            self._open_gl()
         T = _check_pose(T_wc)
         data = self.data if data is None else data
         R_mj = mujoco_from_opencv(T[:3, :3])
@@ -185,11 +211,28 @@ class MujocoRenderer(_Closing):
         return np.flipud(self._depth_from_buffer()).copy()
 
     def close(self) -> None:
-        if self._ctx is not None:
-            self._gl.make_current()
-            self._ctx.free()
-            self._ctx = None
-            self._gl.free()
+        self._closed = True
+        self._free_gl()
+        _LIVE.discard(self)
+
+
+_LIVE: weakref.WeakSet[MujocoRenderer] = weakref.WeakSet()
+
+
+def _release_gl_before_fork() -> None:
+    """Free every renderer's GL context and terminate MuJoCo's EGL display (see the module doc)."""
+    for renderer in list(_LIVE):
+        renderer._free_gl()
+    egl = sys.modules.get("mujoco.egl")
+    if egl is not None and egl.EGL_DISPLAY is not None:
+        display, egl.EGL_DISPLAY = egl.EGL_DISPLAY, None
+        EGL = egl.EGL
+        EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+        EGL.eglTerminate(display)
+        EGL.eglReleaseThread()
+
+
+os.register_at_fork(before=_release_gl_before_fork)
 
 
 #: pyrender writes gamma-encoded colour, about texture * light^(1/2.2), where MuJoCo writes
