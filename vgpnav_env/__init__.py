@@ -18,3 +18,7 @@ def _register_envs() -> None:
 
 
 _register_envs()
+
+from vgpnav_env.make import make_env  # noqa: E402 (after the GL platform is chosen)
+
+__all__ = ["make_env"]
