@@ -8,12 +8,16 @@ and a noisy checker texture, so features and depth are well defined everywhere.
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
 from PIL import Image
 from trimesh.visual import TextureVisuals
 
+from vgpnav_env.perception.database import DatabaseConfig, open_database
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 
 ROOM_X = 4.0
@@ -27,6 +31,11 @@ TINY_BOXES = {
 }
 #: The marker cube sits centred on top of ``box_a``.
 MARKER = ((1.0, 1.5, 0.85), (0.1, 0.1, 0.1))
+#: How the tests open the ``home_build`` database (fixture ``home_database``): no prior map (the
+#: wrapper's behaviour does not depend on it and building it is slow) and no stored RootSIFT
+#: features (the simulated backbone never reads them; the classical backbone extracts the
+#: references it uses on first use).
+HOME_DATABASE_CONFIG = DatabaseConfig(prior="none", store_features=False)
 
 
 def checker_texture(seed: int, size: int = 128, cells: int = 8, base=(200, 180, 150)) -> np.ndarray:
@@ -133,3 +142,26 @@ def home_build(tmp_path_factory: pytest.TempPathFactory):
     out = tmp_path_factory.mktemp("builds") / "home-160x120-s0-realistic"
     build_runs("home", out, size=(160, 120), seed=0, progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def home_database(home_build):
+    """The ``home_build`` database opened with :data:`HOME_DATABASE_CONFIG`, once per session:
+    ``open_database`` returns this object to every later call with the same directory and
+    settings (e.g. ``evaluate_navigation(database_dir=home_build, wrapper_kwargs=...)``)."""
+    return open_database(home_build, HOME_DATABASE_CONFIG)
+
+
+@pytest.fixture(scope="session")
+def tiny_build_source(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``tiny_build.make_tiny_build`` rendered once per session; tests use ``tiny_build_dir``."""
+    from tiny_build import make_tiny_build
+
+    return make_tiny_build(tmp_path_factory.mktemp("tiny_source") / "build")
+
+
+@pytest.fixture(scope="module")
+def tiny_build_dir(tiny_build_source: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A private copy (per test module) of the session's tiny build: modules write their own
+    index caches into it."""
+    return Path(shutil.copytree(tiny_build_source, tmp_path_factory.mktemp("tiny") / "build"))

@@ -127,6 +127,7 @@ def test_agent_bad_inputs():
         agent.act((1.0, 1.0, 0.0), occ[:10], spec, (2.0, 2.0))
 
 
+@pytest.mark.slow
 def test_oracle_reaches_95_percent_of_20_home_episodes():
     import gymnasium as gym
 

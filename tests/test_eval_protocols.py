@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from tiny_build import make_tiny_build
 
 from vgpnav_env.cli import main
 from vgpnav_env.eval.perception_runs import (
@@ -24,8 +23,8 @@ from vgpnav_env.perception.pipeline import LOST_REASONS
 
 
 @pytest.fixture(scope="module")
-def build(tmp_path_factory) -> Path:
-    return make_tiny_build(tmp_path_factory.mktemp("tiny_eval") / "build")
+def build(tiny_build_dir: Path) -> Path:
+    return tiny_build_dir
 
 
 def report(out: Path) -> dict:
@@ -33,6 +32,7 @@ def report(out: Path) -> dict:
     return json.loads((out / "report.json").read_text())
 
 
+@pytest.mark.slow
 def test_localization_report(build: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "loc"
     code = main(["eval", "localization", "tiny", "--build", str(build), "--backbone", "simulated",
@@ -59,6 +59,7 @@ def test_localization_report(build: Path, tmp_path: Path, capsys: pytest.Capture
     assert "## Per-frame results" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_several_scenes_give_one_table_and_one_report_each(build: Path, tmp_path: Path) -> None:
     out = tmp_path / "multi"
     args = ["eval", "perception", "tiny", "tiny:b", "--build", str(build), str(build), "--backbone",
@@ -112,6 +113,7 @@ def test_metrics_expose_a_planted_gross_error() -> None:
     assert p["overall_median_m"] == pytest.approx(0.045)
 
 
+@pytest.mark.slow
 def test_perception_report_and_scale_ablation(build: Path, tmp_path: Path) -> None:
     metric = {}
     for flag in ([], ["--no-scale-recovery"]):
@@ -130,6 +132,7 @@ def test_perception_report_and_scale_ablation(build: Path, tmp_path: Path) -> No
     assert metric[True]["acc_m"] > 3 * metric[False]["acc_m"]
 
 
+@pytest.mark.slow
 def test_timing_report(build: Path, tmp_path: Path) -> None:
     out = tmp_path / "timing"
     assert main(["eval", "timing", "tiny", "--build", str(build), "--queries", "3", "--out", str(out)]) == 0
@@ -147,6 +150,7 @@ def test_timing_report(build: Path, tmp_path: Path) -> None:
     assert r["seconds_per_frame"]["total"] >= r["seconds_per_frame"]["backbone"] > 0
 
 
+@pytest.mark.slow
 def test_ablations_report(build: Path, tmp_path: Path) -> None:
     out = tmp_path / "abl"
     args = ["eval", "ablations", "tiny", "--build", str(build), "--backbone", "simulated",
@@ -178,6 +182,7 @@ class StillCamera(torch.nn.Module):
         }
 
 
+@pytest.mark.slow
 def test_learned_backbone_is_selected_with_model_and_weights(
     build: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

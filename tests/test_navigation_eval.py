@@ -192,8 +192,9 @@ def test_failure_labels_say_what_happened(errors, localized, stopped, label):
     assert classify_failure({"success": True}, frames, stopped, success_distance=0.5) is None
 
 
-def test_astar_with_privileged_perception_reports_localization(home_build, tmp_path):
-    from vgpnav_env.perception.database import DatabaseConfig
+@pytest.mark.slow
+def test_astar_with_privileged_perception_reports_localization(home_database, home_build, tmp_path):
+    from conftest import HOME_DATABASE_CONFIG
 
     report = evaluate_navigation(
         "home",
@@ -205,7 +206,7 @@ def test_astar_with_privileged_perception_reports_localization(home_build, tmp_p
         out_dir=tmp_path / "astar",
         progress=False,
         database_dir=home_build,
-        wrapper_kwargs={"database_config": DatabaseConfig(prior="none")},
+        wrapper_kwargs={"database_config": HOME_DATABASE_CONFIG},  # opens home_database
     )
     assert report["backbone"] == "simulated" and report["episodes"] == 1
     assert report["mean_localization_error_m"] < 0.05  # noise-free privileged backbone

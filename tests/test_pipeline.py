@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from tiny_build import QUERY_HEIGHT, make_tiny_build
+from tiny_build import QUERY_HEIGHT
 
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
@@ -26,8 +26,8 @@ FAST_VLAD = VladConfig(grid_step=8, n_words=16, kmeans_iterations=15)
 
 
 @pytest.fixture(scope="module")
-def build(tmp_path_factory) -> Path:
-    return make_tiny_build(tmp_path_factory.mktemp("tiny") / "build")
+def build(tiny_build_dir: Path) -> Path:
+    return tiny_build_dir
 
 
 @pytest.fixture(scope="module")

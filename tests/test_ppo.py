@@ -21,6 +21,7 @@ def trained(tmp_path_factory):
     return out, path
 
 
+@pytest.mark.slow
 def test_tiny_ppo_run_saves_model_checkpoints_config_and_tensorboard(trained):
     out, path = trained
     assert path == out / "model.zip" and path.is_file()
@@ -32,6 +33,7 @@ def test_tiny_ppo_run_saves_model_checkpoints_config_and_tensorboard(trained):
     assert load_config(path) == config and model_path(out) == path
 
 
+@pytest.mark.slow
 def test_resume_continues_from_latest_checkpoint(trained):
     from stable_baselines3 import PPO
 
@@ -41,6 +43,7 @@ def test_resume_continues_from_latest_checkpoint(trained):
     assert latest_checkpoint(out).name == "ppo_384_steps.zip"
 
 
+@pytest.mark.slow
 def test_trained_policy_loads_and_evaluates(trained, tmp_path):
     out, path = trained
     report = evaluate_policy(path, episodes=2, out_dir=tmp_path / "eval")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,20 +32,27 @@ def _assert_same(loaded: Scene, orig: Scene) -> None:
     np.testing.assert_allclose(loaded.bounds, orig.bounds, atol=1e-5)
 
 
-def test_export_load_round_trip_z_up(tmp_path) -> None:
+@pytest.fixture(scope="module")
+def home_exported(tmp_path_factory) -> tuple[Scene, Path]:
+    """The built-in ``home`` and its export as a mesh-scene directory (read only, exported once)."""
     base = load_scene("home")
-    out = export_mesh_scene(base, tmp_path / "flat")
+    return base, export_mesh_scene(base, tmp_path_factory.mktemp("export") / "flat")
+
+
+def test_export_load_round_trip_z_up(home_exported) -> None:
+    base, out = home_exported
     assert list_layouts(str(out)) == ["base"] and scene_slug(str(out)) == "flat"
     loaded = load_scene(str(out))
     assert loaded.layout == "base" and loaded.texture == "native"
     _assert_same(loaded, base)
 
 
-def test_round_trip_renders_like_the_original(tmp_path) -> None:
+@pytest.mark.slow
+def test_round_trip_renders_like_the_original(home_exported) -> None:
     """Exported + reloaded home renders the same images (measured: RGB mean |diff| ~5e-5 grey
     levels, depth max |diff| ~1e-5 m); tolerances: depth 1 mm everywhere, RGB mean 0.5."""
-    base = load_scene("home")
-    loaded = load_scene(str(export_mesh_scene(base, tmp_path / "flat")))
+    base, out = home_exported
+    loaded = load_scene(str(out))
     camera = PinholeCamera(160, 120, np.deg2rad(60.0))
     gt = ground_truth_map(base)
     rng = np.random.default_rng(5)

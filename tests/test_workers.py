@@ -13,7 +13,6 @@ from dataclasses import asdict
 from pathlib import Path
 
 import pytest
-from tiny_build import make_tiny_build
 from worker_tasks import CountingSetup, affinity_task, failing_task, noting_task, tagged_task
 
 from vgpnav_env.eval.perception_runs import QueryRun, perceive_queries
@@ -77,10 +76,11 @@ def _comparable(frames) -> list[dict]:
 
 
 @pytest.fixture(scope="module")
-def build(tmp_path_factory) -> Path:
-    return make_tiny_build(tmp_path_factory.mktemp("tiny_workers") / "build")
+def build(tiny_build_dir: Path) -> Path:
+    return tiny_build_dir
 
 
+@pytest.mark.slow
 def test_query_frames_on_two_processes_equal_one_process(build: Path) -> None:
     """The classical backbone (pixels only): chunks on two processes, anchor shipped to both."""
     run = QueryRun(build, "classical", n_queries=5)
@@ -92,6 +92,7 @@ def test_query_frames_on_two_processes_equal_one_process(build: Path) -> None:
     assert _comparable(two) == _comparable(one)
 
 
+@pytest.mark.slow
 def test_navigation_episodes_on_two_processes_equal_one_process(tmp_path: Path) -> None:
     from vgpnav_env.eval.navigation import evaluate_navigation
 
@@ -111,6 +112,7 @@ needs_ray = pytest.mark.skipif(
 )
 
 
+@pytest.mark.slow
 @needs_ray
 def test_ray_local_instance_with_two_workers_equals_sequential(build: Path) -> None:
     """Noisy simulated backbone: the per-frame seeds make Ray's scheduling irrelevant."""

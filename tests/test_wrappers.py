@@ -10,16 +10,16 @@ import pytest
 
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
-from vgpnav_env.perception.database import DatabaseConfig, open_database
 from vgpnav_env.wrappers import VGPNavObservation
+
+pytestmark = pytest.mark.slow  # every test steps the home scene through its database
 
 ENV_ID = "VGPNav/PointGoal-v0"
 
 
 @pytest.fixture(scope="module")
-def database(home_build):
-    # No prior map: the wrapper's own behaviour does not depend on it and building it is slow.
-    return open_database(home_build, DatabaseConfig(prior="none"))
+def database(home_database):
+    return home_database
 
 
 @pytest.fixture(scope="module")
