@@ -194,7 +194,7 @@ def test_failure_labels_say_what_happened(errors, localized, stopped, label):
 
 @pytest.mark.slow
 def test_astar_with_privileged_perception_reports_localization(home_database, home_build, tmp_path):
-    from conftest import HOME_DATABASE_CONFIG
+    from conftest import HOME_DATABASE_CONFIG, HOME_SIZE
 
     report = evaluate_navigation(
         "home",
@@ -202,7 +202,7 @@ def test_astar_with_privileged_perception_reports_localization(home_database, ho
         backbone="simulated",
         episodes=1,
         seed=7,
-        size=(160, 120),
+        size=HOME_SIZE,
         out_dir=tmp_path / "astar",
         progress=False,
         database_dir=home_build,

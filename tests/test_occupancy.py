@@ -62,8 +62,11 @@ def test_fusion_accumulates_and_clamps() -> None:
     for _ in range(5):
         m.update(box, 0.0, CAM_H)
     assert m.occupied()[cell] and snapshot.free()[cell]
-    # Points outside the grid are ignored.
-    m.update(np.array([[50.0, 50.0, 0.5], [-50.0, 0.0, 0.0]]), 0.0, CAM_H, camera_xy=(0.0, 0.0))
+    # Points outside the grid (an obstacle and a floor point) are classified but change no cell.
+    before = m.logodds.copy()
+    cls = m.update(np.array([[50.0, 50.0, 0.5], [-50.0, 0.0, 0.0]]), 0.0, CAM_H, camera_xy=(0.0, 0.0))
+    assert cls.obstacle.tolist() == [True, False] and cls.free.tolist() == [False, True]
+    np.testing.assert_array_equal(m.logodds, before)
 
 
 def test_prior_and_validation() -> None:

@@ -11,12 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 from tiny_build import QUERY_HEIGHT
 
+import vgpnav_env.perception.database as database_module
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
 from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, TIMING_KEYS, Perceiver, PerceptionConfig, perceive
-from vgpnav_env.perception.retrieval import VladConfig, select_references
+from vgpnav_env.perception.retrieval import VladConfig, VladIndex, select_references
 from vgpnav_env.perception.verify import PoseGate, VerifyConfig
 from vgpnav_env.robot import base_pose
 from vgpnav_env.runs import load_run, load_run_depth
@@ -47,7 +48,7 @@ def errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
     )
 
 
-def test_database_cache_and_prior(database: Database, build: Path) -> None:
+def test_database_cache_and_prior(database: Database, build: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     assert len(database) == 48 and database.index.database.shape[0] == 48
     assert (build / "database" / "index" / "prior.npz").is_file()
     # The floor height comes from database pixels and poses only: within 5 cm of z = 0.
@@ -60,8 +61,16 @@ def test_database_cache_and_prior(database: Database, build: Path) -> None:
     assert (prior.logodds[r - 2 : r + 3, c - 2 : c + 3] > 0).mean() >= 0.5
     r, c = spec.world_to_cell(np.array([2.0, 2.5]))
     assert prior.logodds[r, c] < 0
+
+    # Opened again, everything comes from the on-disk cache: no preparation step may run.
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("the cache was not used")
+
+    monkeypatch.setattr(VladIndex, "fit", must_not_run)
+    monkeypatch.setattr(StoredFeatures, "extract", must_not_run)
+    monkeypatch.setattr(database_module, "build_prior", must_not_run)
     again = Database.open(build, config=DatabaseConfig(vlad=FAST_VLAD, prior_stride=3))
-    assert again.timings["index"] < database.timings["index"] or database.timings["index"] < 0.5
+    assert again.z_ground == database.z_ground
     np.testing.assert_array_equal(again.index.database, database.index.database)
     np.testing.assert_array_equal(again.prior.logodds, database.prior.logodds)
     # A perceiver's map starts from the prior and fuses with its config's log-odds settings.
