@@ -17,7 +17,7 @@ import trimesh
 from PIL import Image
 from trimesh.visual import TextureVisuals
 
-from vgpnav_env.perception.database import DatabaseConfig, open_database
+from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.scenes.scene import Material, Scene, SceneMesh
 
 ROOM_X = 4.0
@@ -158,10 +158,13 @@ def home_database(home_build):
 
 @pytest.fixture(scope="session")
 def tiny_build_source(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``tiny_build.make_tiny_build`` rendered once per session; tests use ``tiny_build_dir``."""
+    """``tiny_build.make_tiny_build`` rendered once per session, its database prepared as the
+    protocols open it (index and stored features, no prior); tests use ``tiny_build_dir``."""
     from tiny_build import make_tiny_build
 
-    return make_tiny_build(tmp_path_factory.mktemp("tiny_source") / "build")
+    out = make_tiny_build(tmp_path_factory.mktemp("tiny_source") / "build")
+    Database.open(out, config=DatabaseConfig(prior="none"), progress=False)
+    return out
 
 
 @pytest.fixture(scope="module")

@@ -201,7 +201,7 @@ def test_astar_with_privileged_perception_reports_localization(home_database, ho
         agent="astar",
         backbone="simulated",
         episodes=1,
-        seed=7,
+        seed=17,  # a short episode (2.7 m): the report's localization fields are the point
         size=HOME_SIZE,
         out_dir=tmp_path / "astar",
         progress=False,
