@@ -1,16 +1,28 @@
-"""PPO (stable-baselines3, ``MultiInputPolicy``) over VGP-Nav observations: training and evaluation.
+"""PPO (stable-baselines3) over VGP-Nav observations: training, evaluation and the learning curve.
 
-``vgpnav train ppo SCENE --steps N --envs E --out DIR [--backbone simulated] [--resume]`` writes
+``vgpnav train ppo SCENE [SCENE ...] --steps N --envs E --out DIR [--perception model|BACKBONE]
+[--resume]`` writes
 
-- ``DIR/config.json``: scene, backbone and env keyword arguments (how to rebuild the env),
+- ``DIR/config.json``: the :func:`vgpnav_env.make_env` config of the training env (scenes,
+  perception, env keyword arguments) and the seed,
 - ``DIR/checkpoints/ppo_<steps>_steps.zip`` (``CheckpointCallback``), ``DIR/model.zip`` (final),
-- ``DIR/tb/``: TensorBoard logs.
+- ``DIR/tb/``: TensorBoard logs and ``progress.csv`` with ``rollout/success_rate`` and
+  ``rollout/spl`` (means over the last 100 episodes) beside SB3's own entries,
+- ``DIR/learning_curve.png``: success rate and SPL against env steps.
 
-With a ``backbone`` the env is wrapped in ``vgpnav_env.wrappers.VGPNavObservation`` (estimated
-pose, goal relative to it, egocentric occupancy crop, localized flag); without one the policy sees
-the raw env observation (camera image + world goal). ``--resume`` continues from the newest
-checkpoint until ``N`` total steps. ``vgpnav eval navigation SCENE --agent ppo:DIR`` (or
-``eval.navigation.evaluate_policy``) evaluates a trained policy with :class:`SB3Policy`.
+Several scenes: one per episode (:class:`~vgpnav_env.make.SceneSampler`), e.g. ``home home:1
+home:2`` (procedural scenes) so that the policy generalises.
+
+The recipe, with a perception (``model``: the privileged error model fitted to classical runs, for
+RL at speed; or a pixel backbone): the policy sees the egocentric occupancy crop through a small
+CNN and the goal relative to the estimated pose as (log(1 + distance), cos, sin of the bearing)
+plus the localized flag (:class:`NavigationExtractor`; the absolute pose is not used, it is scene
+specific). Termination is Habitat's (the env's): the episode ends when the agent stops, a success
+only within the success distance. The reward is Habitat's (decrease of the geodesic distance, +2.5
+on success, -0.01 per step) minus the distance left when it stops too far (:class:`EndPenalty`);
+the stop action starts unlikely (:data:`STOP_LOGIT`) so that early episodes explore instead of
+stopping at once. Without a perception the policy sees the raw env (camera image + world goal).
+``vgpnav eval navigation SCENE --agent ppo:DIR [--perception P]`` evaluates a trained policy.
 """
 
 from __future__ import annotations
@@ -30,43 +42,57 @@ from vgpnav_env.perception.backbones import BACKBONES
 
 logger = logging.getLogger(__name__)
 
-ENV_ID = "VGPNav/PointGoal-v0"
 #: Small images keep RL steps cheap; the CNN needs at least ~36 px per side. With a perception
-#: backbone the policy sees no image, but perception needs ``PERCEPTION_IMAGE_SIZE``.
+#: the policy sees no image, but perception needs ``PERCEPTION_IMAGE_SIZE``.
 DEFAULT_ENV_KWARGS: dict[str, Any] = {"image_size": (64, 48), "layout": "changed"}
 PERCEPTION_IMAGE_SIZE = (160, 120)
+#: Episodes of the perception recipe: shorter than evaluation's 500 steps (they need ~40).
+PERCEPTION_ENV_KWARGS: dict[str, Any] = {"image_size": PERCEPTION_IMAGE_SIZE, "max_steps": 250}
 DEFAULT_PPO_KWARGS: dict[str, Any] = {"n_steps": 128, "batch_size": 64, "n_epochs": 4, "learning_rate": 3e-4}
+#: PPO settings of the perception recipe.
+RECIPE_PPO_KWARGS: dict[str, Any] = {
+    "n_steps": 256,
+    "batch_size": 128,
+    "n_epochs": 4,
+    "learning_rate": 3e-4,
+    "ent_coef": 0.01,
+    "gamma": 0.99,
+}
+PERCEPTIONS = ("model", *sorted(BACKBONES))
 CONFIG_FILE = "config.json"
 MODEL_FILE = "model.zip"
+CURVE_FILE = "learning_curve.png"
+#: Episode measures the monitor records (logged by ``ppo_policy.SuccessLogger``).
+EPISODE_MEASURES = ("success", "spl")
 
 
-def make_env(
-    scene: str, backbone: str | None = None, database_dir: str | None = None, **env_kwargs: Any
-) -> gym.Env:
-    """One training env: ``VGPNav/PointGoal-v0`` on ``scene``, wrapped for ``backbone`` if given
-    (with the database build at ``database_dir``, default: the scene's cached build).
+class EndPenalty(gym.Wrapper):
+    """Training reward of the recipe: the env's (Habitat's) reward, minus the geodesic distance
+    still to go when the agent stops outside the success distance.
 
-    Module-level so that sub-process vector envs can pickle it by reference.
+    With Habitat's reward alone a policy that cannot yet navigate learns to take a step or two
+    towards the goal and stop (measured here: episodes of 4-8 steps after 7k steps, no success);
+    charging the distance left makes stopping early cost what it leaves undone. Timeouts are not
+    charged: their return would depend on the step count, which the policy does not see (charging
+    them too left the value function unable to explain returns, explained variance ~0, and the policy
+    turning in place after 70k steps).
     """
-    env = gym.make(ENV_ID, scene=scene, **env_kwargs)
-    if backbone:
-        from vgpnav_env.wrappers import VGPNavObservation
 
-        env = VGPNavObservation(env, backbone=backbone, database_dir=database_dir)
-    return env
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if terminated and not info["success"]:
+            reward -= float(info["distance_to_goal"])
+        return obs, reward, terminated, truncated, info
 
 
-def make_vec(
-    scene: str,
-    n_envs: int,
-    seed: int,
-    backbone: str | None,
-    env_kwargs: dict[str, Any],
-    database_dir: str | None = None,
-):
-    """Vectorised, monitored envs (``SubprocVecEnv`` for more than one env, else ``DummyVecEnv``)."""
+def make_vec(config: dict[str, Any], n_envs: int, seed: int, end_penalty: bool = False):
+    """Vectorised, monitored ``make_env(config)`` envs (``SubprocVecEnv`` for more than one env,
+    else ``DummyVecEnv``); the monitor records each episode's success, SPL and the env's reward
+    (before :class:`EndPenalty`, applied with ``end_penalty``)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    from vgpnav_env.make import make_env
 
     if n_envs <= 0:
         raise ValueError(f"need at least one env, got {n_envs}")
@@ -74,8 +100,10 @@ def make_vec(
         make_env,
         n_envs=n_envs,
         seed=seed,
-        env_kwargs={"scene": scene, "backbone": backbone, "database_dir": database_dir, **env_kwargs},
+        env_kwargs={"config": config},
         vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+        monitor_kwargs={"info_keywords": EPISODE_MEASURES},
+        wrapper_class=EndPenalty if end_penalty else None,
     )
 
 
@@ -85,12 +113,18 @@ class SB3Policy:
     def __init__(self, path: str | Path) -> None:
         from stable_baselines3 import PPO
 
+        from vgpnav_env.agents.ppo_policy import single_thread
+
+        single_thread()
         self.model = PPO.load(str(path), device="cpu")
 
     def reset(self) -> None:
         return None
 
     def act(self, obs: Any) -> Any:
+        space = self.model.observation_space
+        if isinstance(obs, dict) and hasattr(space, "spaces"):
+            obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
         action, _ = self.model.predict(obs, deterministic=True)
         return int(action) if np.ndim(action) == 0 else action
 
@@ -129,12 +163,46 @@ def model_path(path: str | Path) -> Path:
     return ckpt
 
 
+def train_config(
+    scenes: str | list[str],
+    perception: str | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    database_dir: str | Path | None = None,
+) -> dict[str, Any]:
+    """The :func:`vgpnav_env.make_env` config of a training run (JSON-ready)."""
+    scenes = [scenes] if isinstance(scenes, str) else list(scenes)
+    defaults = {**DEFAULT_ENV_KWARGS, **PERCEPTION_ENV_KWARGS} if perception else DEFAULT_ENV_KWARGS
+    kwargs = {**defaults, **(env_kwargs or {})}
+    kwargs["image_size"] = list(kwargs["image_size"])
+    return {
+        "scene": scenes[0] if len(scenes) == 1 else scenes,
+        "perception": perception,
+        "env": kwargs,
+        "database_dir": str(database_dir) if database_dir is not None else None,
+    }
+
+
+#: Initial logit offset of the stop action in the recipe (its probability starts at ~2%).
+STOP_LOGIT = -3.0
+
+
+def start_without_stopping(model) -> None:
+    """Lower the initial stop logit by :data:`STOP_LOGIT`: a uniform first policy stops after ~4
+    steps, so its episodes end before they learn anything but stopping (the collapse seen before)."""
+    import torch
+
+    from vgpnav_env.robot import Action
+
+    with torch.no_grad():
+        model.policy.action_net.bias[int(Action.STOP)] += STOP_LOGIT
+
+
 def train_ppo(
-    scene: str,
+    scene: str | list[str],
     steps: int,
     out_dir: str | Path,
     n_envs: int = 1,
-    backbone: str | None = None,
+    perception: str | None = None,
     resume: bool = False,
     seed: int = 0,
     env_kwargs: dict[str, Any] | None = None,
@@ -142,58 +210,57 @@ def train_ppo(
     checkpoint_every: int = 10_000,
     database_dir: str | Path | None = None,
 ) -> Path:
-    """Train (or resume) PPO for ``steps`` total env steps; returns the final model path."""
+    """Train (or resume) PPO for ``steps`` total env steps on ``scene`` (one source or several);
+    returns the final model path. With a ``perception`` the recipe of the module docstring."""
     from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+    from stable_baselines3.common.logger import configure
 
+    from vgpnav_env.agents.ppo_policy import NavigationExtractor, SuccessLogger, single_thread
     from vgpnav_env.scenes import list_layouts
 
     if steps <= 0:
         raise ValueError(f"steps must be positive, got {steps}")
-    list_layouts(scene)  # an unknown scene fails here, before anything is written
+    if perception is not None and perception not in PERCEPTIONS:
+        raise ValueError(f"unknown perception {perception!r}; allowed: {list(PERCEPTIONS)}")
+    for source in [scene] if isinstance(scene, str) else scene:
+        list_layouts(source)  # an unknown scene fails here, before anything is written
+    single_thread()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    defaults = {**DEFAULT_ENV_KWARGS, "image_size": PERCEPTION_IMAGE_SIZE} if backbone else DEFAULT_ENV_KWARGS
-    env_kwargs = {**defaults, **(env_kwargs or {})}
-    env_kwargs["image_size"] = list(env_kwargs["image_size"])
-    config = {
-        "scene": scene,
-        "backbone": backbone,
-        "database_dir": str(database_dir) if database_dir is not None else None,
-        "env_kwargs": env_kwargs,
-        "seed": seed,
-    }
-    if resume and (out / CONFIG_FILE).is_file():
-        config = json.loads((out / CONFIG_FILE).read_text())
-    else:
-        (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
-    kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
-    venv = make_vec(config["scene"], n_envs, seed, config["backbone"], kwargs, config.get("database_dir"))
+    saved = json.loads((out / CONFIG_FILE).read_text()) if resume and (out / CONFIG_FILE).is_file() else None
+    run_config = saved or {"env": train_config(scene, perception, env_kwargs, database_dir), "seed": seed}
+    if saved is None:
+        (out / CONFIG_FILE).write_text(json.dumps(run_config, indent=2) + "\n")
+    config = run_config["env"]
+    venv = make_vec(config, n_envs, seed, end_penalty=config["perception"] is not None)
     ckpt = latest_checkpoint(out) if resume else None
     try:
         if ckpt is not None:
             logger.info("resuming from %s", ckpt)
-            model = PPO.load(str(ckpt), env=venv, tensorboard_log=str(out / "tb"), device="cpu")
+            model = PPO.load(str(ckpt), env=venv, device="cpu")
         else:
-            ppo = {**DEFAULT_PPO_KWARGS, **(ppo_kwargs or {})}
+            recipe = config["perception"] is not None
+            ppo = {**(RECIPE_PPO_KWARGS if recipe else DEFAULT_PPO_KWARGS), **(ppo_kwargs or {})}
             ppo["batch_size"] = min(ppo["batch_size"], ppo["n_steps"] * n_envs)
-            model = PPO(
-                "MultiInputPolicy",
-                venv,
-                tensorboard_log=str(out / "tb"),
-                seed=seed,
-                device="cpu",
-                verbose=0,
-                **ppo,
-            )
+            if recipe:
+                ppo["policy_kwargs"] = {
+                    "features_extractor_class": NavigationExtractor,
+                    "net_arch": {"pi": [128], "vf": [128]},
+                }
+            model = PPO("MultiInputPolicy", venv, seed=seed, device="cpu", verbose=0, **ppo)
+            if recipe:
+                start_without_stopping(model)
+        model.set_logger(configure(str(out / "tb"), ["tensorboard", "csv"]))
         remaining = steps - model.num_timesteps
         if remaining > 0:
-            callback = CheckpointCallback(
+            checkpoints = CheckpointCallback(
                 save_freq=max(checkpoint_every // n_envs, 1),
                 save_path=str(out / "checkpoints"),
                 name_prefix="ppo",
             )
-            model.learn(remaining, callback=callback, reset_num_timesteps=ckpt is None, tb_log_name="ppo")
+            callback = CallbackList([checkpoints, SuccessLogger()])
+            model.learn(remaining, callback=callback, reset_num_timesteps=ckpt is None)
             model.save(str(out / "checkpoints" / f"ppo_{model.num_timesteps}_steps"))
         model.save(str(out / MODEL_FILE))
     finally:
@@ -202,14 +269,52 @@ def train_ppo(
     return out / MODEL_FILE
 
 
+def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
+    """Success rate and SPL (means over the last 100 episodes) against env steps, from the run's
+    ``tb/progress.csv``; written to ``out`` (default ``RUN/learning_curve.png``)."""
+    import csv
+
+    from matplotlib.figure import Figure
+
+    run_dir = Path(run_dir)
+    with open(run_dir / "tb" / "progress.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("rollout/success_rate")]
+    if not rows:
+        raise ValueError(f"{run_dir}: no logged episodes yet (rollout/success_rate)")
+    steps = np.array([float(r["time/total_timesteps"]) for r in rows])
+    fig = Figure(figsize=(6.4, 3.6))
+    ax = fig.add_subplot()
+    for key, label in (("rollout/success_rate", "success rate"), ("rollout/spl", "SPL")):
+        ax.plot(steps, [float(r[key]) for r in rows], label=label)
+    config = load_config(run_dir)["env"]
+    scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
+    ax.set(
+        xlabel="env steps",
+        ylabel="mean over the last 100 episodes",
+        ylim=(0, 1),
+        title=f"PPO, {config['perception']} perception, {', '.join(scenes)}",
+    )
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    out = Path(out) if out is not None else run_dir / CURVE_FILE
+    fig.savefig(out, dpi=100)
+    return out
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """CLI arguments of ``vgpnav train ppo``."""
-    parser.add_argument("scene", help="built-in scene name (e.g. home)")
+    parser.add_argument(
+        "scene", nargs="+", help="one or more scene sources (home, home:7, ...): one per episode"
+    )
     parser.add_argument("--steps", type=positive_int_arg, default=100_000, help="total env steps")
     parser.add_argument("--envs", type=positive_int_arg, default=2, help="parallel envs")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument(
-        "--backbone", choices=sorted(BACKBONES), default=None, help="perception backbone (default: none)"
+        "--perception",
+        choices=PERCEPTIONS,
+        default=None,
+        help="model (privileged error model, RL at speed) or a backbone (pixels); default: none (raw env)",
     )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
     parser.add_argument(
@@ -228,19 +333,24 @@ def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav train ppo``; returns the process exit code."""
     if args.database is not None and not args.database.is_dir():
         raise ValueError(f"--database {args.database}: no such build directory (make one with vgpnav build)")
-    if args.backbone == "learned":
+    if args.perception == "learned":
         raise ValueError(
-            "PPO trains with --backbone classical or simulated; the learned backbone is for vgpnav eval"
+            "PPO trains with --perception model, classical or simulated; learned is for vgpnav eval"
         )
-    train_ppo(
+    if args.database is not None and len(args.scene) > 1:
+        raise ValueError("--database names one scene's build: give one scene")
+    path = train_ppo(
         args.scene,
         args.steps,
         args.out,
         n_envs=args.envs,
-        backbone=args.backbone,
+        perception=args.perception,
         resume=args.resume,
         seed=args.seed,
         checkpoint_every=args.checkpoint_every,
         database_dir=args.database,
     )
+    if args.perception is not None:
+        print(f"learning curve: {plot_learning_curve(args.out)}")
+    print(f"model: {path}")
     return 0

@@ -1,6 +1,7 @@
 """Navigation protocol: success rate, SPL and soft SPL of an agent over point-goal episodes.
 
-``vgpnav eval navigation SCENE --agent astar|oracle|ppo:PATH --backbone B --episodes N --out DIR
+``vgpnav eval navigation SCENE --agent astar|oracle|ppo:PATH --backbone B [--perception pixels|model]
+--episodes N --out DIR
 [--seed S] [--size WxH] [--max-steps N] [--workers N] [--ray [ADDRESS]]`` writes
 ``DIR/report.json`` (settings, aggregates, one record per episode with its per-frame pose errors),
 ``DIR/report.md`` (settings, failure labels, summary, per-episode table, plots), ``DIR/errors.png``
@@ -129,23 +130,43 @@ class AgentPlan:
     def description(self) -> str:
         """E.g. ``astar (VGP-Nav, classical backbone)``."""
         what = f"VGP-Nav, {self.backbone} backbone" if self.backbone else "no perception"
+        if self.backbone == "model":
+            what = "model perception, privileged"
         if self.name == "oracle":
             what = "true pose and map"
         return f"{self.name} ({what})"
 
 
-def plan_agent(agent: str, backbone: str) -> AgentPlan:
+#: ``--perception``: what perception agents drive on.
+PERCEPTION_KINDS = {
+    "pixels": "VGP-Nav on the camera images with --backbone",
+    "model": "the PRIVILEGED error model fitted to classical runs (vgpnav_env.perception.model)",
+}
+
+
+def plan_agent(agent: str, backbone: str, perception: str | None = None) -> AgentPlan:
     """The :class:`AgentPlan` of an ``--agent`` string (a one-line ValueError for an unknown name,
-    FileNotFoundError for a missing PPO model); ``backbone`` applies to perception agents."""
+    FileNotFoundError for a missing PPO model). Perception agents drive on ``perception``
+    (:data:`PERCEPTION_KINDS`; ``pixels`` uses ``backbone``): A* by default on pixels, a PPO policy
+    by default on the perception it was trained with (and its image size and database)."""
+    if perception is not None and perception not in PERCEPTION_KINDS:
+        raise ValueError(f"unknown perception {perception!r}; allowed: {list(PERCEPTION_KINDS)}")
+    chosen = {None: None, "pixels": backbone, "model": "model"}[perception]
     name, path = parse_agent(agent)
     if name == "ppo":
         model = ppo.model_path(path)
-        config = ppo.load_config(model)
-        env_kwargs = {**config["env_kwargs"], "image_size": tuple(config["env_kwargs"]["image_size"])}
-        return AgentPlan(name, config.get("backbone"), env_kwargs, model, config.get("database_dir"))
+        config = ppo.load_config(model)["env"]
+        trained = config["perception"]
+        env_kwargs = dict(config["env"])
+        env_kwargs.pop("max_steps", None)  # the protocol's budget
+        if chosen is None or chosen == trained:
+            env_kwargs["image_size"] = tuple(env_kwargs["image_size"])
+            return AgentPlan(name, trained, env_kwargs, model, config.get("database_dir"))
+        env_kwargs.pop("image_size")  # another perception: the protocol's image size (its database)
+        return AgentPlan(name, chosen, env_kwargs, model)
     if name == "oracle":
         return AgentPlan(name, None, {"render_rgb": False})
-    return AgentPlan(name, backbone if AGENTS[name].perception else None)
+    return AgentPlan(name, (chosen or backbone) if AGENTS[name].perception else None)
 
 
 def make_policy(plan: AgentPlan, env: gym.Env) -> Policy:
@@ -163,6 +184,10 @@ def make_env(plan: AgentPlan, env_kwargs: dict[str, Any], wrapper_kwargs: dict[s
     env = gym.make(ENV_ID, **env_kwargs)
     if plan.backbone is None:
         return env
+    if plan.backbone == "model":
+        from vgpnav_env.perception.model import ModelObservation
+
+        return ModelObservation(env, fit=wrapper_kwargs.get("fit"))
     from vgpnav_env.wrappers import VGPNavObservation
 
     return VGPNavObservation(env, backbone=plan.backbone, **wrapper_kwargs)
@@ -360,7 +385,11 @@ def navigation_settings(
         "agent": plan.name,
         "image size": f"{size[0]}x{size[1]}",
         "backbone": plan.backbone or "none",
-        "perception mode": VGPNavObservation.perception_mode if plan.backbone else "none",
+        "perception mode": "model"
+        if plan.backbone == "model"
+        else VGPNavObservation.perception_mode
+        if plan.backbone
+        else "none",
         "max steps": env_kwargs.get("max_steps", defaults["max_steps"]),
         "success radius (m)": env_kwargs.get("success_distance", defaults["success_distance"]),
         "episodes": episodes,
@@ -402,8 +431,10 @@ def evaluate_navigation(
     database_dir: str | Path | None = None,
     wrapper_kwargs: dict[str, Any] | None = None,
     workers: Workers | None = None,
+    perception: str | None = None,
 ) -> dict[str, Any]:
     """Run the protocol; returns the report dict (also written to ``out_dir`` if given).
+    ``perception``: see :func:`plan_agent`.
 
     Perception agents use the database build at ``database_dir`` (default: the scene's build at
     the env's image size in the vgpnav cache, built if missing); ``wrapper_kwargs`` go to
@@ -414,7 +445,7 @@ def evaluate_navigation(
     clock = RunClock()
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
-    plan = plan_agent(agent, backbone)
+    plan = plan_agent(agent, backbone, perception)
     kwargs = {"scene": scene, "layout": "changed", "image_size": tuple(size), **plan.env_kwargs}
     kwargs.update(env_kwargs or {})
     if kwargs["layout"] not in list_layouts(scene):  # an unknown scene fails here, before any work
@@ -425,7 +456,7 @@ def evaluate_navigation(
     own = workers is None
     workers = workers or Workers(1, progress=progress)
     try:
-        if plan.backbone is not None:
+        if plan.backbone not in (None, "model"):
             several = workers.workers > 1 or workers.ray_address is not None
             wrapper_kwargs = prepare_database(scene, kwargs, wrapper_kwargs, progress, several)
         setup = NavigationSetup(plan, kwargs, wrapper_kwargs, plots=out_dir is not None)
@@ -528,14 +559,14 @@ def evaluate_policy(
 ) -> dict[str, Any]:
     """The navigation protocol for a trained PPO policy (run directory or model file) in the env it
     was trained on (scene, backbone, image size and database from its ``config.json``)."""
-    config = ppo.load_config(path)
+    config = ppo.load_config(path)["env"]
+    scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
     return evaluate_navigation(
-        scene or config["scene"],
+        scene or scenes[0],
         agent=f"ppo:{ppo.model_path(path)}",
-        backbone=config["backbone"] or "classical",
         episodes=episodes,
         seed=seed,
-        size=tuple(config["env_kwargs"]["image_size"]),
+        size=tuple(config["env"]["image_size"]),
         out_dir=out_dir,
         progress=progress,
         database_dir=config.get("database_dir"),
@@ -564,6 +595,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"one of {agent_choices()} (default astar)",
     )
     add_backbone_arguments(parser)
+    parser.add_argument(
+        "--perception",
+        choices=list(PERCEPTION_KINDS),
+        default=None,
+        help="what perception agents drive on: "
+        + "; ".join(f"{k}: {v}" for k, v in PERCEPTION_KINDS.items())
+        + " (default: pixels for astar, as trained for ppo)",
+    )
     parser.add_argument("--episodes", type=positive_int_arg, default=20, help="number of start/goal pairs")
     parser.add_argument("--out", required=True, type=Path, help="report directory")
     parser.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i")
@@ -601,6 +640,7 @@ def run(args: argparse.Namespace) -> int:
             database_dir=args.database,
             wrapper_kwargs={"backbone_options": options},
             workers=workers,
+            perception=args.perception,
         )
     print_headline(headline(report), args.out)
     return 0

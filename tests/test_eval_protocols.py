@@ -298,8 +298,8 @@ def test_learned_backbone_is_selected_with_model_and_weights(
         (["eval", "navigation", "home", "--backbone", "learned"], "--backbone learned needs --model"),
         (["eval", "ablations", "home", "--backbone", "learned"], "--backbone learned needs --model"),
         (
-            ["train", "ppo", "home", "--backbone", "learned"],
-            "PPO trains with --backbone classical or simulated",
+            ["train", "ppo", "home", "--perception", "learned"],
+            "PPO trains with --perception model, classical or simulated",
         ),
     ],
 )

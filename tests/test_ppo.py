@@ -7,7 +7,7 @@ import json
 import pytest
 
 from vgpnav_env.agents.ppo import latest_checkpoint, load_config, model_path, train_ppo
-from vgpnav_env.eval.navigation import evaluate_policy
+from vgpnav_env.eval.navigation import evaluate_navigation, evaluate_policy
 
 TINY = {"image_size": (48, 40), "max_steps": 40}
 
@@ -28,8 +28,8 @@ def test_tiny_ppo_run_saves_model_checkpoints_config_and_tensorboard(trained):
     assert latest_checkpoint(out).name == "ppo_256_steps.zip"
     assert any((out / "tb").rglob("events.out.tfevents*"))
     config = json.loads((out / "config.json").read_text())
-    assert config["scene"] == "home" and config["backbone"] is None
-    assert config["env_kwargs"]["image_size"] == [48, 40]
+    assert config["env"]["scene"] == "home" and config["env"]["perception"] is None
+    assert config["env"]["env"]["image_size"] == [48, 40]
     assert load_config(path) == config and model_path(out) == path
 
 
@@ -61,3 +61,51 @@ def test_bad_arguments():
         train_ppo("home", 0, "unused")
     with pytest.raises(FileNotFoundError, match="config.json"):
         load_config("/nonexistent/model.zip")
+
+
+def test_model_perception_recipe_trains_logs_success_and_evaluates(tmp_path):
+    """The perception recipe on the privileged model: CNN over the map crop, success and SPL in
+    TensorBoard's CSV, a learning curve, and evaluation through the navigation protocol."""
+    from vgpnav_env.agents.ppo import plot_learning_curve
+    from vgpnav_env.agents.ppo_policy import NavigationExtractor
+
+    out = tmp_path / "recipe"
+    path = train_ppo(
+        ["home", "home:1"],
+        256,
+        out,
+        n_envs=1,
+        perception="model",
+        env_kwargs={"image_size": (40, 30), "max_steps": 20},
+        ppo_kwargs={"n_steps": 128},
+    )
+    from stable_baselines3 import PPO
+
+    model = PPO.load(str(path), device="cpu")
+    assert isinstance(model.policy.features_extractor, NavigationExtractor)
+    header = (out / "tb" / "progress.csv").read_text().splitlines()[0].split(",")
+    assert "rollout/success_rate" in header and "rollout/spl" in header
+    assert plot_learning_curve(out).is_file()
+    report = evaluate_navigation(
+        "home", agent=f"ppo:{out}", episodes=2, perception="model", env_kwargs={"max_steps": 15}
+    )
+    assert report["episodes"] == 2 and report["backbone"] == "model"
+    assert all(r["steps"] <= 15 for r in report["records"])
+
+
+def test_end_penalty_charges_the_distance_left_on_failure_only():
+    import gymnasium as gym
+
+    from vgpnav_env.agents.ppo import EndPenalty
+
+    plain = gym.make("VGPNav/PointGoal-v0", scene="home", image_size=(32, 24), render_rgb=False)
+    wrapped = EndPenalty(gym.make("VGPNav/PointGoal-v0", scene="home", image_size=(32, 24), render_rgb=False))
+    for env in (plain, wrapped):
+        env.reset(seed=3)
+    (_, r_plain, done, _, info), (_, r_wrapped, *_) = plain.step(0), wrapped.step(0)  # stop at the start
+    assert done and not info["success"] and info["distance_to_goal"] >= 1.0
+    assert r_wrapped == pytest.approx(r_plain - info["distance_to_goal"])
+    start, goal = info["start"], info["goal"]
+    wrapped.reset(options={"start": (goal[0], goal[1], start[2]), "goal": tuple(goal)})
+    _, reward, _, _, info = wrapped.step(0)  # stop on the goal: Habitat's reward, no penalty
+    assert info["success"] and reward == pytest.approx(2.5 - 0.01)

@@ -1,4 +1,4 @@
-"""The ``vgpnav`` command line: ``vgpnav build | eval <protocol> | train <algo> | report``.
+"""The ``vgpnav`` command line: ``vgpnav build | eval <protocol> | calibrate | train <algo> | report``.
 
 Commands live in their own modules, listed in :data:`COMMANDS` and imported only when invoked
 (so ``vgpnav --help`` stays fast and one broken command cannot break the others). A command
@@ -33,6 +33,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval navigation": (
         "vgpnav_env.eval.navigation",
         "point-goal success rate, SPL and soft SPL of an agent",
+    ),
+    "calibrate": (
+        "vgpnav_env.eval.calibrate",
+        "fit the privileged 'model' perception (RL at speed) to a classical localization run",
     ),
     "train ppo": ("vgpnav_env.agents.ppo", "train PPO (stable-baselines3) on VGP-Nav observations"),
     "report": ("vgpnav_env.eval.compare", "put several eval runs side by side (tables and plots)"),

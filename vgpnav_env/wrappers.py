@@ -83,6 +83,50 @@ def scene_database_dir(
     return out
 
 
+def navigation_space(base: gym.Env, map_size: int) -> spaces.Dict:
+    """The navigation observation space (module docstring) of the point-goal env ``base``: pose
+    bounds are the map bounds plus :data:`POSE_MARGIN_M`. Shared by every perception wrapper."""
+    goal_space = base.observation_space["goal"]
+    lo = np.append(goal_space.low - POSE_MARGIN_M, -np.pi).astype(np.float32)
+    hi = np.append(goal_space.high + POSE_MARGIN_M, np.pi).astype(np.float32)
+    max_dist = float(np.linalg.norm(hi[:2] - lo[:2]))
+    return spaces.Dict(
+        {
+            "pose": spaces.Box(lo, hi, (3,), np.float32),
+            "goal_rel": spaces.Box(
+                np.array([0.0, -np.pi], np.float32), np.array([max_dist, np.pi], np.float32), (2,), np.float32
+            ),
+            "map": spaces.Box(0, 255, (1, map_size, map_size), np.uint8),
+            "localized": spaces.Discrete(2),
+        }
+    )
+
+
+def navigation_observation(
+    space: spaces.Dict,
+    estimate: NDArray[np.float64],
+    goal: NDArray,
+    occupancy: LogOddsMap,
+    localized: bool,
+    map_resolution: float,
+) -> dict[str, Any]:
+    """The observation of ``space`` (from :func:`navigation_space`) for the pose ``estimate``
+    (x, y, yaw), the world ``goal`` (x, y) and the fused map ``occupancy``."""
+    x, y, yaw = estimate
+    d = np.asarray(goal, float) - estimate[:2]
+    size = space["map"].shape[-1]
+    crop = occupancy.egocentric_crop(x, y, yaw, size, map_resolution)
+    max_dist = float(space["goal_rel"].high[0])
+    return {
+        "pose": estimate.astype(np.float32),
+        "goal_rel": np.array(
+            [min(np.hypot(*d), max_dist), wrap_angle(np.arctan2(d[1], d[0]) - yaw)], np.float32
+        ),
+        "map": crop[None],
+        "localized": int(localized),
+    }
+
+
 class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """VGP-Nav state observations (see the module docstring) over ``VGPNav/PointGoal-v0``.
 
@@ -161,9 +205,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.map_resolution = float(map_resolution)
         self.init_yaw_jitter = np.radians(np.asarray(init_yaw_jitter_deg, float))
 
-        goal_space = base.observation_space["goal"]
-        lo = np.append(goal_space.low - POSE_MARGIN_M, -np.pi).astype(np.float32)
-        hi = np.append(goal_space.high + POSE_MARGIN_M, np.pi).astype(np.float32)
+        self.observation_space = navigation_space(base, self.map_size)
+        lo, hi = self.observation_space["pose"].low, self.observation_space["pose"].high
         self.pose_state: PoseState = OdometryState(
             lo,
             hi,
@@ -172,20 +215,6 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             turn_step=base.turn_step,
             gate=None if motion_gate is None else GateConfig(*motion_gate),
             stall_threshold=stall_threshold,
-        )
-        max_dist = float(np.linalg.norm(hi[:2] - lo[:2]))
-        self.observation_space = spaces.Dict(
-            {
-                "pose": spaces.Box(lo, hi, (3,), np.float32),
-                "goal_rel": spaces.Box(
-                    np.array([0.0, -np.pi], np.float32),
-                    np.array([max_dist, np.pi], np.float32),
-                    (2,),
-                    np.float32,
-                ),
-                "map": spaces.Box(0, 255, (1, self.map_size, self.map_size), np.uint8),
-                "localized": spaces.Discrete(2),
-            }
         )
         self.last_result: PerceptionResult | None = None
         self.measurements = Measurements("estimate")
@@ -240,19 +269,10 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.pose_state.correct(base_pose(result.T_wc) if localized else None)
         estimate = self.pose_state.estimate
         self.last_result = result
-        x, y, yaw = estimate
-        d = np.asarray(obs["goal"], float) - estimate[:2]
         occupancy = self.perceiver.map
-        crop = occupancy.egocentric_crop(x, y, yaw, self.map_size, self.map_resolution)
-        max_dist = float(self.observation_space["goal_rel"].high[0])
-        new_obs = {
-            "pose": estimate.astype(np.float32),
-            "goal_rel": np.array(
-                [min(np.hypot(*d), max_dist), wrap_angle(np.arctan2(d[1], d[0]) - yaw)], np.float32
-            ),
-            "map": crop[None],
-            "localized": int(localized),
-        }
+        new_obs = navigation_observation(
+            self.observation_space, estimate, obs["goal"], occupancy, localized, self.map_resolution
+        )
         obstacles = occupancy.occupied()
         state = EstimateState(new_obs["pose"], localized, np.asarray(info["pose"]))
         (self.measurements.reset if first else self.measurements.update)(state)

@@ -257,6 +257,11 @@ class PointGoalEnv(gym.Env):
         without moving the robot (e.g. extra views for a wrapper that initialises standing still)."""
         return self._camera_renderer().render(self.camera_T_wc(pose))
 
+    def render_depth(self, pose: ArrayLike | None = None) -> NDArray[np.float32]:
+        """The robot camera's z-depth only at ``pose`` (default: the current pose); cheaper than
+        :meth:`render_view` (e.g. for the privileged ``model`` perception, with ``render_rgb=False``)."""
+        return self._camera_renderer().render_depth(self.camera_T_wc(pose))
+
     def _camera_renderer(self) -> MujocoRenderer:
         if self._renderer is None:  # created lazily: GL state must live in the process that renders
             self._renderer = MujocoRenderer(self.world.model, self.camera, data=self.robot.data)

@@ -1,0 +1,174 @@
+"""The privileged ``model`` perception: fitting, the shipped fit, determinism and its draws in the env."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from vgpnav_env import make_env
+from vgpnav_env.perception.model import ModelObservation, PerceptionModel, fit_model, median_depth
+from vgpnav_env.perception.occupancy import OCCUPIED
+
+ENV_ID = "VGPNav/PointGoal-v0"
+SIZE = (40, 30)
+
+#: The known model synthetic calibration data are drawn from.
+TRUE = PerceptionModel(
+    depth_edges=[1.0, 2.0],
+    p_lost=[0.5, 0.2, 0.05],
+    stickiness=0.4,
+    p_gross=0.08,
+    log_translation=(np.log(0.01), 0.8),
+    log_rotation=(np.log(0.1), 0.6),
+    gross_translation_m=[3.0, 6.0],
+    gross_rotation_deg=[2.0, 180.0],
+    depth_noise_m=0.05,
+    coverage=0.8,
+)
+
+
+def synthetic_records(model: PerceptionModel, n: int, seed: int) -> tuple[list[dict], np.ndarray]:
+    """``n`` consecutive query frames drawn from ``model`` (records as the localization report's)."""
+    rng = np.random.default_rng(seed)
+    depths = rng.uniform(0.5, 3.0, n)
+    records, lost = [], False
+    for i, d in enumerate(depths):
+        lost = bool(rng.random() < model.lost_probability(d, lost))
+        t, r = (np.nan, np.nan) if lost else model.pose_error(rng)
+        records.append(
+            {
+                "frame": i,
+                "status": "lost" if lost else "localized",
+                "translation_m": t,
+                "rotation_deg": r,
+                # A frame's Acc: the mean distance of its points (here 50, off by the depth noise).
+                "acc_m": np.nan if lost else np.abs(rng.normal(0.0, model.depth_noise_m, 50)).mean(),
+                "n_points": 0 if lost else int(rng.binomial(1000, model.coverage)),
+            }
+        )
+    return records, depths
+
+
+def test_fit_recovers_the_model_it_was_drawn_from():
+    records, depths = synthetic_records(TRUE, 6000, seed=1)
+    fit = fit_model(records, depths, sampled_pixels=1000, n_bins=3)
+    # Bins are the depth terciles (~ 1.33 and 2.17 m for uniform(0.5, 3)); the lost rate per bin
+    # matches the data's within 0.01, and the stickiness the true one within 0.08.
+    bins = np.searchsorted(fit.depth_edges, depths, side="right")
+    lost = np.array([r["status"] == "lost" for r in records])
+    for b in range(3):
+        assert fit.p_lost[b] == pytest.approx(lost[bins == b].mean(), abs=0.01)
+    assert fit.stickiness == pytest.approx(TRUE.stickiness, abs=0.08)
+    assert fit.p_gross == pytest.approx(TRUE.p_gross, abs=0.015)
+    assert fit.log_translation[0] == pytest.approx(TRUE.log_translation[0], abs=0.05)
+    assert fit.log_rotation[1] == pytest.approx(TRUE.log_rotation[1], abs=0.05)
+    assert set(fit.gross_translation_m) == {3.0, 6.0}
+    assert fit.depth_noise_m == pytest.approx(TRUE.depth_noise_m, rel=0.1)
+    assert fit.coverage == pytest.approx(TRUE.coverage, abs=0.01)
+
+
+def test_shipped_fit_matches_the_measured_classical_run():
+    """The default fit came from ``vgpnav eval localization home --queries 0`` (classical, 320x240):
+    184 frames, 36 lost (20%), 9 gross among 148 localized, median error 0.004 m / 0.09 deg."""
+    fit = PerceptionModel.load()
+    # Quartile bins hold equal counts; Laplace smoothing ((k + 1) / (n + 2), n = 46) adds ~0.012.
+    assert np.mean(fit.p_lost) == pytest.approx(36 / 184, abs=0.015)
+    assert fit.p_lost[0] > 2 * fit.p_lost[2]  # close views (median depth < 1.34 m) are lost more
+    assert fit.p_gross == pytest.approx(9 / 148, abs=1e-9) and len(fit.gross_translation_m) == 9
+    assert np.exp(fit.log_translation[0]) == pytest.approx(0.004, rel=0.5)
+    assert fit.source["scene"] == "home" and fit.source["backbone"] == "classical"
+
+
+@pytest.fixture(scope="module")
+def model_env(walled_room):
+    env = ModelObservation(
+        gym.make(ENV_ID, scene=walled_room, image_size=SIZE, render_rgb=False, max_steps=60)
+    )
+    yield env
+    env.close()
+
+
+def _rollout(env, seed: int, steps: int):
+    rng = np.random.default_rng(seed)
+    obs, info = env.reset(seed=seed)
+    out = [(obs, info)]
+    for _ in range(steps):
+        obs, _, terminated, truncated, info = env.step(int(rng.choice([1, 1, 2, 3])))
+        out.append((obs, info))
+        if terminated or truncated:
+            obs, info = env.reset()
+            out.append((obs, info))
+    return out
+
+
+def test_same_seed_same_draws_and_space(model_env):
+    a, b = _rollout(model_env, 5, 40), _rollout(model_env, 5, 40)
+    for (oa, _), (ob, _) in zip(a, b, strict=True):
+        assert model_env.observation_space.contains(oa)
+        for key in oa:
+            np.testing.assert_array_equal(oa[key], ob[key])
+    c = _rollout(model_env, 6, 40)
+    assert any(not np.array_equal(x[0]["pose"], y[0]["pose"]) for x, y in zip(a, c, strict=False))
+
+
+def test_draws_in_the_env_follow_the_fit(walled_room):
+    """Over 1500 steps: the lost rate per depth bin, the gross rate and the inlier error median are
+    those of the fit (binomial tolerances ~3 sigma); lost frames carry the pose by odometry."""
+    env = ModelObservation(
+        gym.make(ENV_ID, scene=walled_room, image_size=SIZE, render_rgb=False, max_steps=60), fit=TRUE
+    )
+    frames = _rollout(env, 0, 1500)
+    lost = np.array([not o["localized"] for o, _ in frames])
+    err = np.array([i["localization_error_m"] for _, i in frames])
+    depth_bins = []
+    for _, info in frames:
+        d = env.unwrapped.render_depth(info["pose"])[::4, ::4]
+        depth_bins.append(np.searchsorted(TRUE.depth_edges, median_depth(d), side="right"))
+    depth_bins = np.asarray(depth_bins)
+    # Stickiness keeps the marginal lost rate of a bin at p_lost (stationary chain).
+    for b, p in enumerate(TRUE.p_lost):
+        n = (depth_bins == b).sum()
+        if n > 100:
+            assert lost[depth_bins == b].mean() == pytest.approx(p, abs=3 * np.sqrt(p * (1 - p) / n) + 0.03)
+    fixes = err[~lost]
+    assert np.mean(fixes > 1.0) == pytest.approx(TRUE.p_gross, abs=0.03)
+    assert np.median(fixes[fixes < 0.5]) == pytest.approx(0.01, rel=0.25)
+    env.close()
+
+
+def test_map_starts_from_the_base_layout_and_fuses_depth():
+    env = make_env(
+        {"scene": "home", "perception": "model", "env": {"image_size": [40, 30], "render_rgb": False}}
+    )
+    obs, info = env.reset(seed=0)
+    assert (obs["map"] == OCCUPIED).mean() > 0.02  # walls of the prior around the robot
+    fused = env.get_wrapper_attr("fused_map")
+    before = fused.logodds.copy()
+    for _ in range(5):
+        obs, *_ = env.step(2)
+    assert not np.array_equal(before, fused.logodds)  # localized frames fused depth
+    env.close()
+
+
+def test_calibrate_reads_the_builds_query_depth(home_build):
+    """``calibrate`` bins the records by the median ground-truth depth of their query views."""
+    from vgpnav_env.eval.calibrate import calibrate
+    from vgpnav_env.runs import load_run_depth
+
+    depth = load_run_depth(home_build / "query")
+    n = min(len(depth), 40)
+    medians = np.array([median_depth(d) for d in depth[:n]])
+    # Lost exactly when the view is closer than its median: the fit must put all losses in the
+    # near bins (Laplace-smoothed: (k + 1) / (n + 2)).
+    records = [
+        {"frame": i, "status": "lost" if m < np.median(medians) else "localized", "translation_m": 0.01,
+         "rotation_deg": 0.1, "acc_m": 0.02, "n_points": 1000}
+        for i, m in enumerate(medians)
+    ]  # fmt: skip
+    fit = calibrate(home_build, records, {"scene": "home"})
+    width, height = depth.shape[2], depth.shape[1]
+    assert fit.source["image size"] == f"{width}x{height}" and fit.source["scene"] == "home"
+    assert fit.p_lost[0] > 0.8 and fit.p_lost[-1] < 0.2
+    # The pipeline samples every 2nd pixel in both directions.
+    assert fit.coverage == pytest.approx(1000 / (-(-width // 2) * -(-height // 2)), rel=1e-6)

@@ -1,0 +1,331 @@
+"""``model`` perception (PRIVILEGED): VGP-Nav's measured errors drawn at RL speed, no pixel work.
+
+A :class:`PerceptionModel` is fitted (``vgpnav calibrate``, :func:`fit_model`) to the per-frame
+records of a classical localization run on a build's query run, beside the ground-truth depth of
+those frames. :class:`ModelObservation` then replaces the pixel pipeline of
+:class:`~vgpnav_env.wrappers.VGPNavObservation` (same observation space) by draws from it:
+
+- **Lost.** Per frame, ``p = stickiness * lost_before + (1 - stickiness) * p_lost[bin]``, where the
+  bin is that of the view's median ground-truth depth (close views lose more often) and
+  ``stickiness`` (fitted by maximum likelihood on consecutive query frames) makes lost spells as
+  long as measured; the marginal lost rate per bin is the measured one.
+- **Pose error when localized.** With probability ``p_gross`` a gross error resampled from the
+  measured gross errors (> 0.5 m or 10 deg, e.g. a room mistaken for a similar one); otherwise
+  log-normal translation (m) and rotation (deg) errors fitted to the other localized frames. The
+  translation error is applied horizontally in a uniform direction, the rotation error to the
+  yaw with a random sign.
+- **While lost.** The pose is carried forward by the robot's odometry (the true relative motion of
+  the step, i.e. ideal wheel odometry), as the pixel wrapper carries it forward between fixes.
+- **Map.** Localized frames fuse the rendered depth (every ``point_stride``-th pixel, a random
+  ``coverage`` fraction of them, Gaussian noise of ``depth_noise_m`` along the optical axis,
+  fitted from the measured Acc) placed with the *estimated* pose, into a log-odds map that starts
+  from the ground truth of the database's ``base`` layout clamped to +-2 (an idealised database
+  prior; the pixel wrapper's prior is reconstructed from the database images).
+
+Everything privileged (true pose, rendered depth, ground-truth prior) comes from the env; the name
+says so. Same seed (``reset(seed=...)``), same draws. The default fit
+(``data/model_classical_home.json``) ships with the package; see its ``source`` for the command.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from vgpnav_env.geometry import PinholeCamera, wrap_angle
+from vgpnav_env.grid import GridSpec
+from vgpnav_env.measures import EstimateState, Measurements
+from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
+
+#: Errors above (metres, degrees) are gross (as the localization reports count them).
+GROSS_ERROR = (0.5, 10.0)
+#: The shipped default fit.
+DEFAULT_FIT = "model_classical_home.json"
+#: Log-odds of the ground-truth prior (as the database prior's clamp).
+PRIOR_LOGODDS = 2.0
+#: Median depth of a view that sees nothing (metres).
+NO_DEPTH = 10.0
+
+
+@dataclass(frozen=True)
+class PerceptionModel:
+    """A fitted error model (see the module docstring); metres and degrees."""
+
+    depth_edges: list[float]  # inner bin edges of the view's median depth (m)
+    p_lost: list[float]  # lost probability per bin (len(depth_edges) + 1)
+    stickiness: float
+    p_gross: float  # among localized frames
+    log_translation: tuple[float, float]  # (mean, std) of log(translation error m), non-gross
+    log_rotation: tuple[float, float]  # (mean, std) of log(rotation error deg), non-gross
+    gross_translation_m: list[float]
+    gross_rotation_deg: list[float]
+    depth_noise_m: float
+    coverage: float  # fraction of the sampled pixels that give a point
+    source: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if len(self.p_lost) != len(self.depth_edges) + 1:
+            raise ValueError("p_lost needs one probability per depth bin (len(depth_edges) + 1)")
+        if not (0 <= self.stickiness < 1 and 0 <= self.p_gross <= 1 and 0 < self.coverage <= 1):
+            raise ValueError("need 0 <= stickiness < 1, 0 <= p_gross <= 1 and 0 < coverage <= 1")
+        if len(self.gross_translation_m) != len(self.gross_rotation_deg):
+            raise ValueError("gross translation and rotation errors must pair up")
+
+    def lost_probability(self, median_depth: float, lost_before: bool) -> float:
+        p = self.p_lost[int(np.searchsorted(self.depth_edges, median_depth, side="right"))]
+        return self.stickiness * float(lost_before) + (1.0 - self.stickiness) * p
+
+    def pose_error(self, rng: np.random.Generator) -> tuple[float, float]:
+        """(translation m, rotation deg) of one localized frame."""
+        if self.gross_translation_m and rng.random() < self.p_gross:
+            k = int(rng.integers(len(self.gross_translation_m)))
+            return self.gross_translation_m[k], self.gross_rotation_deg[k]
+        return float(np.exp(rng.normal(*self.log_translation))), float(np.exp(rng.normal(*self.log_rotation)))
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> PerceptionModel:
+        """A fit from ``path`` (default: the shipped :data:`DEFAULT_FIT`)."""
+        if path is None:
+            text = resources.files("vgpnav_env.perception").joinpath("data", DEFAULT_FIT).read_text()
+        else:
+            text = Path(path).read_text()
+        data = json.loads(text)
+        data["log_translation"] = tuple(data["log_translation"])
+        data["log_rotation"] = tuple(data["log_rotation"])
+        return cls(**data)
+
+
+def median_depth(depth: ArrayLike) -> float:
+    """Median of the finite positive z-depths of a view (any shape; :data:`NO_DEPTH` when nothing
+    is hit)."""
+    d = np.asarray(depth).reshape(-1)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if len(d) else NO_DEPTH
+
+
+def _log_normal(x: NDArray[np.float64]) -> tuple[float, float]:
+    logs = np.log(np.maximum(x, 1e-5))
+    return (float(logs.mean()), float(logs.std())) if len(logs) else (np.log(1e-3), 0.0)
+
+
+def _stickiness(lost: NDArray[np.bool_], p: NDArray[np.float64], consecutive: NDArray[np.bool_]) -> float:
+    """Maximum-likelihood stickiness on frames that follow their predecessor (grid of 0.01)."""
+    if not consecutive.any():
+        return 0.0
+    prev, now, base = lost[:-1][consecutive], lost[1:][consecutive], p[1:][consecutive]
+    grid = np.arange(0.0, 0.96, 0.01)
+    q = grid[:, None] * prev[None] + (1 - grid[:, None]) * base[None]
+    q = np.clip(q, 1e-6, 1 - 1e-6)
+    loglik = np.where(now[None], np.log(q), np.log(1 - q)).sum(axis=1)
+    return float(grid[int(np.argmax(loglik))])
+
+
+def fit_model(
+    records: list[dict[str, Any]],
+    median_depths: ArrayLike,
+    sampled_pixels: int,
+    n_bins: int = 4,
+    source: dict[str, Any] | None = None,
+) -> PerceptionModel:
+    """Fit a :class:`PerceptionModel` to localization records (``frame``, ``status``,
+    ``translation_m``, ``rotation_deg``, ``acc_m``, ``n_points``; as the localization report's),
+    the median ground-truth depth of each record's view, and the number of pixels the pipeline
+    samples points from (``n_points`` / ``sampled_pixels`` is the coverage)."""
+    if not records:
+        raise ValueError("no records to fit")
+    md = np.asarray(median_depths, float)
+    if md.shape != (len(records),):
+        raise ValueError(f"need one median depth per record, got {md.shape} for {len(records)}")
+    lost = np.array([r["status"] != "localized" for r in records])
+    edges = np.unique(np.quantile(md, np.linspace(0, 1, n_bins + 1)[1:-1]))
+    bins = np.searchsorted(edges, md, side="right")
+    counts = np.bincount(bins, minlength=len(edges) + 1)
+    losses = np.bincount(bins, weights=lost, minlength=len(edges) + 1)
+    p_lost = (losses + 1.0) / (counts + 2.0)  # Laplace: no bin is certain from a few frames
+    frames = np.array([r["frame"] for r in records])
+    stick = _stickiness(lost, p_lost[bins], np.diff(frames) == 1)
+    loc = ~lost
+    t = np.array([r["translation_m"] for r in records], float)[loc]
+    rot = np.array([r["rotation_deg"] for r in records], float)[loc]
+    gross = (t > GROSS_ERROR[0]) | (rot > GROSS_ERROR[1])
+    acc = np.array([r.get("acc_m") for r in records], float)[loc]
+    acc = acc[np.isfinite(acc)]
+    points = np.array([r.get("n_points", 0) for r in records], float)[loc]
+    return PerceptionModel(
+        depth_edges=[float(e) for e in edges],
+        p_lost=[float(p) for p in p_lost],
+        stickiness=stick,
+        p_gross=float(gross.mean()) if loc.any() else 0.0,
+        log_translation=_log_normal(t[~gross]),
+        log_rotation=_log_normal(rot[~gross]),
+        gross_translation_m=[float(x) for x in t[gross]],
+        gross_rotation_deg=[float(x) for x in rot[gross]],
+        # Acc is a mean nearest-neighbour distance: for Gaussian noise of std s it is ~ s * sqrt(2 / pi).
+        depth_noise_m=float(np.median(acc) / np.sqrt(2 / np.pi)) if len(acc) else 0.0,
+        coverage=float(np.clip(np.median(points) / sampled_pixels, 1e-3, 1.0)) if len(points) else 1.0,
+        source=dict(source or {}),
+    )
+
+
+def prior_map(source: str, spec: GridSpec, robot_radius: float, robot_height: float) -> NDArray[np.float32]:
+    """Log-odds (``spec.shape``) of the ground truth of ``source``'s ``base`` layout: obstacles
+    +:data:`PRIOR_LOGODDS`, free cells -:data:`PRIOR_LOGODDS`, else 0 (cached per process)."""
+    key = (source, spec, robot_radius, robot_height)
+    if key not in _PRIORS:
+        from vgpnav_env.groundtruth import ground_truth_map
+        from vgpnav_env.scenes import load_scene
+
+        gt = ground_truth_map(load_scene(source, layout="base"), spec.resolution, robot_radius, robot_height)
+        rows, cols = np.indices(spec.shape)
+        cells = gt.spec.world_to_cell(spec.cell_to_world(np.stack([rows, cols], axis=-1)))
+        inside = gt.spec.contains(cells)
+        r, c = cells[..., 0].clip(0, gt.spec.shape[0] - 1), cells[..., 1].clip(0, gt.spec.shape[1] - 1)
+        prior = np.zeros(spec.shape, np.float32)
+        prior[inside & gt.free[r, c]] = -PRIOR_LOGODDS
+        prior[inside & gt.obstacle[r, c]] = PRIOR_LOGODDS
+        _PRIORS[key] = prior
+    return _PRIORS[key]
+
+
+_PRIORS: dict[tuple, NDArray[np.float32]] = {}
+
+
+class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """``model`` perception (PRIVILEGED, module docstring) over ``VGPNav/PointGoal-v0``: the
+    observation space, ``info`` entries and ``fused_map`` of :class:`~vgpnav_env.wrappers.VGPNavObservation`.
+
+    ``fit``: a fit file (default: the shipped one) or a :class:`PerceptionModel`.
+    """
+
+    perception_mode = "model"
+
+    def __init__(
+        self,
+        env: gym.Env,
+        fit: str | Path | PerceptionModel | None = None,
+        *,
+        map_size: int = 64,
+        map_resolution: float = 0.1,
+        point_stride: int = 4,
+        prior: bool = True,
+    ) -> None:
+        from vgpnav_env.wrappers import navigation_space
+
+        gym.utils.RecordConstructorArgs.__init__(
+            self,
+            fit=None if fit is None else str(fit) if not isinstance(fit, PerceptionModel) else fit,
+            map_size=map_size,
+            map_resolution=map_resolution,
+            point_stride=point_stride,
+            prior=prior,
+        )
+        gym.Wrapper.__init__(self, env)
+        base = env.unwrapped
+        if not hasattr(base, "render_depth"):
+            raise TypeError(f"ModelObservation wraps VGPNav/PointGoal-v0, got {type(base).__name__}")
+        if map_size < 8 or map_resolution <= 0 or point_stride < 1:
+            raise ValueError("need map_size >= 8, map_resolution > 0 and point_stride >= 1")
+        self.model = fit if isinstance(fit, PerceptionModel) else PerceptionModel.load(fit)
+        self.map_resolution = float(map_resolution)
+        self.point_stride = int(point_stride)
+        self.observation_space = navigation_space(base, int(map_size))
+        self._occ = OccupancyConfig()
+        spec = base.ground_truth.spec
+        self._prior = (
+            prior_map(base.scene_source, spec, base.robot_radius, base.world.gt.robot_height)
+            if prior and base.scene_source is not None
+            else np.zeros(spec.shape, np.float32)
+        )
+        self.fused_map = LogOddsMap(spec, self._occ.l_free, self._occ.l_occ, self._occ.clamp)
+        self._rays = self._sampled_rays(base.camera)
+        self.rng = np.random.default_rng(0)
+        self.estimate = np.zeros(3)
+        self._lost = False
+        self._true = np.zeros(3)
+        self.measurements = Measurements("estimate")
+
+    def _sampled_rays(self, camera: PinholeCamera) -> NDArray[np.float64]:
+        return camera.rays()[:: self.point_stride, :: self.point_stride].reshape(-1, 3)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.rng = np.random.default_rng(self.env.unwrapped.np_random.integers(2**63))
+        self.fused_map.logodds = self._prior.copy()
+        self._true = np.asarray(info["pose"], float)
+        self._lost = False
+        self.estimate = self._true.copy()  # the robot initialises standing still where it starts
+        return self._observe(obs, info, first=True)
+
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        true = np.asarray(info["pose"], float)
+        # Odometry: the true relative motion of this step, applied to the estimate.
+        dx, dy = true[:2] - self._true[:2]
+        c, s = np.cos(self.estimate[2] - self._true[2]), np.sin(self.estimate[2] - self._true[2])
+        self.estimate = self.estimate + np.array([c * dx - s * dy, s * dx + c * dy, true[2] - self._true[2]])
+        self.estimate[2] = wrap_angle(self.estimate[2])
+        self._true = true
+        new_obs, info = self._observe(obs, info, first=False)
+        return new_obs, reward, terminated, truncated, info
+
+    def _perceive(self, depth: NDArray[np.float32]) -> bool:
+        """Draw this frame's outcome; on a fix, set the estimate and fuse the depth. Returns localized."""
+        m, rng = self.model, self.rng
+        d = depth[:: self.point_stride, :: self.point_stride].reshape(-1)
+        valid = np.isfinite(d) & (d > 0) & (d <= self._occ.max_depth)
+        self._lost = bool(rng.random() < m.lost_probability(median_depth(d), self._lost))
+        if self._lost:
+            return False
+        t, r = m.pose_error(rng)
+        heading = rng.uniform(0.0, 2.0 * np.pi)
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        error = np.array([t * np.cos(heading), t * np.sin(heading), sign * np.radians(r)])
+        self.estimate = self._true + error
+        self.estimate[2] = wrap_angle(self.estimate[2])
+        keep = valid & (rng.random(len(d)) < m.coverage)
+        z = d[keep] + rng.normal(0.0, m.depth_noise_m, int(keep.sum()))
+        base = self.env.unwrapped
+        T_wc = base.camera_T_wc(self.estimate)
+        points = (self._rays[keep] * z[:, None]) @ T_wc[:3, :3].T + T_wc[:3, 3]
+        self.fused_map.update(
+            points,
+            0.0,
+            base.camera_height,
+            camera_xy=T_wc[:2, 3],
+            free_tol=self._occ.free_tol,
+            obstacle_min=self._occ.obstacle_min,
+        )
+        return True
+
+    def _observe(self, obs: dict[str, NDArray], info: dict[str, Any], first: bool):
+        from vgpnav_env.wrappers import navigation_observation
+
+        depth = info["depth"] if info["depth"] is not None else self.env.unwrapped.render_depth()
+        localized = self._perceive(depth)
+        new_obs = navigation_observation(
+            self.observation_space, self.estimate, obs["goal"], self.fused_map, localized, self.map_resolution
+        )
+        state = EstimateState(new_obs["pose"], localized, self._true)
+        (self.measurements.reset if first else self.measurements.update)(state)
+        info = dict(info)
+        info.update(
+            perception={"status": "localized" if localized else "lost", "mode": "model"},
+            estimated_pose=self.estimate.copy(),
+            map_spec=self.fused_map.spec,
+            **self.measurements.metrics(),
+        )
+        if self.env.unwrapped.render_mode is not None:
+            self.env.unwrapped.set_overlay(estimated_pose=self.estimate, localized=localized)
+        return new_obs, info
