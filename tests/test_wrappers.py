@@ -79,16 +79,6 @@ def test_privileged_perception_gives_true_pose_goal_and_map(wrapped):
     assert np.mean(free <= 0.15) >= 0.85 and free.max() < 0.6, np.percentile(free, [50, 90, 100])
 
 
-def test_same_seed_same_wrapped_observations(wrapped):
-    a, _ = wrapped.reset(seed=4)
-    a1 = wrapped.step(2)[0]
-    b, _ = wrapped.reset(seed=4)
-    b1 = wrapped.step(2)[0]
-    for key in ("pose", "goal_rel", "map"):
-        np.testing.assert_array_equal(a[key], b[key])
-        np.testing.assert_array_equal(a1[key], b1[key])
-
-
 def test_perception_astar_reaches_goal_with_privileged_backbone(wrapped):
     from vgpnav_env.eval.navigation import PerceptionAStar, run_episode
 
