@@ -270,8 +270,9 @@ def train_ppo(
 
 
 def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
-    """Success rate and SPL (means over the last 100 episodes) against env steps, from the run's
-    ``tb/progress.csv``; written to ``out`` (default ``RUN/learning_curve.png``)."""
+    """Success rate and SPL, and the episode return (Habitat's reward, before :class:`EndPenalty`),
+    means over the last 100 episodes, against env steps, from the run's ``tb/progress.csv``;
+    written to ``out`` (default ``RUN/learning_curve.png``)."""
     import csv
 
     from matplotlib.figure import Figure
@@ -282,19 +283,21 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     if not rows:
         raise ValueError(f"{run_dir}: no logged episodes yet (rollout/success_rate)")
     steps = np.array([float(r["time/total_timesteps"]) for r in rows])
-    fig = Figure(figsize=(6.4, 3.6))
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(6.4, 5.6))
+    ax, ax_return = fig.subplots(2, 1, sharex=True)
     for key, label in (("rollout/success_rate", "success rate"), ("rollout/spl", "SPL")):
         ax.plot(steps, [float(r[key]) for r in rows], label=label)
+    ax_return.plot(steps, [float(r["rollout/ep_rew_mean"]) for r in rows], color="tab:green")
     config = load_config(run_dir)["env"]
     scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
     ax.set(
-        xlabel="env steps",
-        ylabel="mean over the last 100 episodes",
+        ylabel="mean, last 100 episodes",
         ylim=(0, 1),
         title=f"PPO, {config['perception']} perception, {', '.join(scenes)}",
     )
-    ax.grid(alpha=0.3)
+    ax_return.set(xlabel="env steps", ylabel="episode return (Habitat reward)")
+    for a in (ax, ax_return):
+        a.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
     out = Path(out) if out is not None else run_dir / CURVE_FILE
