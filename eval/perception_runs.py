@@ -37,14 +37,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from vgpnav_env.arguments import positive_int_arg
+from vgpnav_env.arguments import count_arg, positive_int_arg
 from vgpnav_env.eval.workers import Workers, note
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.motion_averaging import AVERAGING_METHODS
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
-from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, nearby_cameras
+from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, RetrievalConfig, nearby_cameras
 from vgpnav_env.perception.scale_recovery import GroundAnchor
 from vgpnav_env.runs import Build, load_build, load_run_depth, read_build_summary, read_run_meta
 
@@ -137,11 +137,20 @@ def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--backbone`` (with ``--model`` / ``--weights``), ``--retrieval``, ``--averaging``, ``--k``."""
+    """``--backbone`` (with ``--model`` / ``--weights``), ``--retrieval``, ``--averaging``, ``--k``,
+    ``--rerank``."""
     add_backbone_arguments(parser)
     parser.add_argument("--retrieval", choices=RETRIEVAL_METHODS, default="geometry", help="default geometry")
     parser.add_argument("--averaging", choices=AVERAGING_METHODS, default="weighted", help="default weighted")
     parser.add_argument("--k", type=positive_int_arg, default=10, help="number of references (default 10)")
+    parser.add_argument(
+        "--rerank",
+        type=count_arg,
+        default=RetrievalConfig.rerank,
+        metavar="N",
+        help="re-rank the N most similar database images by verified feature matches before the "
+        f"selection, 0 = off (default {RetrievalConfig.rerank})",
+    )
 
 
 def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Path | None = None) -> Path:
@@ -286,6 +295,7 @@ class QueryRun:
             "averaging": self.config.averaging.method,
             "scale_recovery": self.config.scale.enabled,
             "k": self.config.retrieval.k,
+            "rerank": self.config.retrieval.rerank,
             "query frames": f"{n} of {meta['n_frames']}",
             "seed": self.seed,
         }
@@ -594,5 +604,5 @@ def config_from_args(args: argparse.Namespace, *, scale: bool = True) -> Percept
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
     return PerceptionConfig.ablation(
-        retrieval=args.retrieval, averaging=args.averaging, scale=scale, k=args.k
+        retrieval=args.retrieval, averaging=args.averaging, scale=scale, k=args.k, rerank=args.rerank
     )

@@ -14,6 +14,7 @@ from vgpnav_env.perception.retrieval import (
     VladConfig,
     VladIndex,
     geometric_median,
+    geometric_rerank,
     nearby_cameras,
     pose_guided_references,
     select_references,
@@ -112,6 +113,26 @@ def test_sift_index_fits_from_given_features_and_shares_the_query_extraction(
     index.similarity(query)
     ClassicalBackbone(sift)(query, [crops[8]], CAMERA, reference_keys=[8])
     assert len(detected) == 2  # the query once, the reference once
+
+
+def test_geometric_rerank_puts_the_views_that_share_geometry_first(panorama: np.ndarray) -> None:
+    crops = [np.ascontiguousarray(panorama[:, x : x + 320]) for x in range(0, 1281, STEP)]
+    backbone = ClassicalBackbone(ClassicalConfig())
+    features = [backbone.extract(c) for c in crops]
+    query = backbone.extract(np.ascontiguousarray(panorama[:, 410:730]))  # overlaps crops 3..18
+    # Appearance got it wrong: the far end of the panorama looks most similar.
+    wrong = np.linspace(-1.0, 1.0, len(crops))
+    s = geometric_rerank(wrong, query, features.__getitem__, RetrievalConfig(k=3, rerank=20))
+    top = np.argsort(-s, kind="stable")
+    assert set(top[:3]) <= set(range(13, 19)), top[:5]  # the overlapping crops among the 20 re-ranked
+    assert np.all(s[19:] < wrong.min())  # crops 19..32 do not overlap: below every other image
+    s_more = geometric_rerank(wrong, query, features.__getitem__, RetrievalConfig(rerank=33))
+    best = int(np.argmax(s_more))
+    assert abs(best * STEP - 410) <= STEP and s_more[best] == 2.0
+    off = geometric_rerank(wrong, query, features.__getitem__, RetrievalConfig(rerank=0))
+    np.testing.assert_array_equal(off, wrong)
+    with pytest.raises(ValueError, match="rerank"):
+        RetrievalConfig(rerank=-1)
 
 
 def test_dense_extraction_on_threads_is_the_same(index: VladIndex, panorama: np.ndarray) -> None:

@@ -49,6 +49,7 @@ from vgpnav_env.perception.backbones.classical import (
     FeatureCache,
     Features,
     remember_features,
+    rootsift,
     sift_settings,
 )
 from vgpnav_env.perception.backbones.threads import thread_map
@@ -325,6 +326,15 @@ class Database:
                 "ClassicalConfig (open_database(..., backbone_config=...))"
             )
         return store
+
+    def reference_features(self, i: int) -> Features:
+        """Database image ``i``'s RootSIFT features with the index's feature settings (stored, else
+        extracted and kept in :attr:`feature_cache`)."""
+        features = self.feature_cache.get(i)
+        if features is None:
+            features = rootsift(self.images[i], self.index.sift)
+            self.feature_cache.put(i, features)
+        return features
 
     def new_map(self, config: OccupancyConfig | None = None) -> LogOddsMap:
         """A fresh log-odds map over :attr:`map_spec` fusing with ``config``'s ``l_free``, ``l_occ``

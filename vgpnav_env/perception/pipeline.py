@@ -2,8 +2,8 @@
 
 :meth:`Perceiver.perceive` runs the paper's stages (Sec. III, DESIGN.md "Perception") in order:
 
-1. retrieval: VLAD similarity to every database image, then :func:`select_references`
-   (geometry-aware Alg. 1, or plain top-k);
+1. retrieval: VLAD similarity to every database image, optionally re-scored for the top-N by
+   :func:`geometric_rerank`, then :func:`select_references` (geometry-aware Alg. 1, or plain top-k);
 2. backbone: query first, then the references (database indices as feature-cache keys);
    relative poses ``T_qi`` and query depth at one unknown scale;
 3. motion averaging: metric ``T_wc`` from the references' known poses;
@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from vgpnav_env.geometry import PinholeCamera
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
+from vgpnav_env.perception.backbones.classical import rootsift
 from vgpnav_env.perception.database import Database
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
@@ -47,7 +48,7 @@ from vgpnav_env.perception.motion_averaging import (
 )
 from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
 from vgpnav_env.perception.points import depth_points
-from vgpnav_env.perception.retrieval import RetrievalConfig, select_references
+from vgpnav_env.perception.retrieval import RetrievalConfig, geometric_rerank, select_references
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
     GroundEstimate,
@@ -126,10 +127,12 @@ class PerceptionConfig:
         scale: bool = True,
         k: int = 10,
         camera_height: float = CAMERA_HEIGHT,
+        rerank: int = RetrievalConfig.rerank,
     ) -> PerceptionConfig:
-        """The default config with the three ablation switches set (and ``k`` references)."""
+        """The default config with the three ablation switches set (and ``k`` references, ``rerank``
+        candidates re-ranked by geometry)."""
         return cls(
-            retrieval=RetrievalConfig(k=k, method=retrieval),
+            retrieval=RetrievalConfig(k=k, method=retrieval, rerank=rerank),
             averaging=MotionAveragingConfig(method=averaging),
             scale=ScaleConfig(enabled=scale),
             camera_height=camera_height,
@@ -380,6 +383,10 @@ class Perceiver:
         db, cfg = self.database, self.config
         with clock.stage("retrieval"):
             sims = np.nan_to_num(db.index.similarity(rgb), nan=-1.0, posinf=-1.0, neginf=-1.0)
+            if cfg.retrieval.rerank:
+                sift = db.index.sift
+                query = rootsift(rgb, sift)
+                sims = geometric_rerank(sims, query, db.reference_features, cfg.retrieval, sift.ratio)
             refs = select_references(sims, db.poses, cfg.retrieval)
         if len(refs) == 0:
             return _Localization(refs, reason="too few matches", detail="empty database")

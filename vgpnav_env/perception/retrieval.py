@@ -8,6 +8,9 @@
   classical backbone's SIFT features (``local_features="sift"``, default: the database's stored
   features fit the index and a query's features are extracted once for retrieval and backbone)
   or DenseVLAD's dense grid (``"dense"``).
+- :func:`geometric_rerank` (optional, ``RetrievalConfig.rerank``) re-scores the top-N VLAD
+  candidates by how many feature matches one epipolar geometry explains (hloc-style
+  verification against the database's stored features);
 - :func:`select_references` is the paper's Alg. 1 (geometry-aware retrieval) or plain top-k.
 
 Database poses ``T_w`` are ``T_wi`` (camera i -> world, OpenCV camera, metres).
@@ -29,7 +32,13 @@ from numpy.typing import ArrayLike, NDArray
 from tqdm import tqdm
 
 from vgpnav_env.atomic import atomic_write
-from vgpnav_env.perception.backbones.classical import ClassicalConfig, rootsift, sift_settings
+from vgpnav_env.perception.backbones.classical import (
+    ClassicalConfig,
+    Features,
+    match_descriptors,
+    rootsift,
+    sift_settings,
+)
 from vgpnav_env.perception.backbones.threads import thread_map
 
 #: Bumped whenever the descriptor computation changes, so stale caches are not loaded.
@@ -407,6 +416,14 @@ class RetrievalConfig:
     ``method="geometry"`` is Alg. 1; ``"topk"`` is plain top-k by similarity (ablation).
     ``l_scale`` (metres) normalises translation distances in the diversity term; None =
     the largest pairwise camera distance in the valid pool (the paper leaves it undefined).
+    ``rerank`` > 0: the ``rerank`` most similar database images are re-scored by
+    :func:`geometric_rerank` before the selection (``rerank_keypoints`` query keypoints,
+    candidates with fewer than ``rerank_min_inliers`` verified matches drop to the end); 0 = off.
+    Measured on all query frames of home / hospital (classical, k = 10, Alg. 1), off -> 40:
+    retrieval recall 0.946 -> 0.940 / 0.876 -> 0.912, gross errors 9 -> 5 / 26 -> 20, lost
+    19.6 -> 20.1 % / 33.2 -> 34.4 %, recall at 5 cm / 5 deg 0.728 -> 0.755 / 0.589 -> 0.589,
+    CPU s per frame 0.36 -> 0.48 / 0.43 -> 0.56; on the tiny test room (one wall texture) it
+    chose aliased walls and lost more frames. Not better everywhere, so off by default.
     """
 
     k: int = 10
@@ -417,8 +434,16 @@ class RetrievalConfig:
     lambda_sim: float = 0.2
     outlier_percentile: float = 95.0
     l_scale: float | None = None
+    rerank: int = 0
+    rerank_keypoints: int = 600
+    rerank_min_inliers: int = 20
 
     def __post_init__(self) -> None:
+        if self.rerank < 0 or self.rerank_keypoints < 8 or self.rerank_min_inliers < 8:
+            raise ValueError(
+                f"need rerank >= 0, rerank_keypoints >= 8 and rerank_min_inliers >= 8, got "
+                f"{self.rerank}, {self.rerank_keypoints}, {self.rerank_min_inliers}"
+            )
         if self.k < 1 or self.pool_factor < 1:
             raise ValueError(f"k and pool_factor must be >= 1, got {self.k}, {self.pool_factor}")
         if self.method not in RETRIEVAL_METHODS:
@@ -449,6 +474,51 @@ def geometric_median(points: ArrayLike, iterations: int = 100, tol: float = 1e-7
             return step
         m = step
     return m
+
+
+def verified_matches(query: Features, reference: Features, ratio: float, max_error_px: float = 1.0) -> int:
+    """How many ratio-test mutual matches of ``query`` with ``reference`` one fundamental matrix
+    explains (OpenCV USAC-MAGSAC++, ``max_error_px`` pixels); 0 under 8 matches."""
+    pairs = match_descriptors(query.descriptors, reference.descriptors, ratio, mutual=True)
+    if len(pairs) < 8:
+        return 0
+    pq = np.ascontiguousarray(query.keypoints[pairs[:, 0]], np.float32)
+    pr = np.ascontiguousarray(reference.keypoints[pairs[:, 1]], np.float32)
+    try:
+        _, mask = cv2.findFundamentalMat(pq, pr, cv2.USAC_MAGSAC, max_error_px, 0.999, 1000)
+    except cv2.error:  # OpenCV 5's USAC asserts when no model is found (degenerate matches)
+        return 0
+    return int(mask.sum()) if mask is not None else 0
+
+
+def geometric_rerank(
+    similarity: ArrayLike,
+    query: Features,
+    features: Callable[[int], Features],
+    config: RetrievalConfig,
+    ratio: float = 0.8,
+) -> NDArray[np.float64]:
+    """Similarity (M,) with the ``config.rerank`` most similar database images re-scored by geometry.
+
+    ``query``: the query's RootSIFT features (every ``n / rerank_keypoints``-th keypoint is used);
+    ``features``: a database image's features by index (e.g. from :attr:`Database.feature_cache`). A
+    candidate with ``v >= rerank_min_inliers`` :func:`verified_matches` scores ``1 + v / v_max``
+    (above every unverified image, ordered by verified matches); one with fewer scores its
+    similarity minus 3 (below every other image); images beyond the top-N keep their similarity.
+    """
+    s = np.asarray(similarity, float).copy()
+    n = min(config.rerank, len(s))
+    if n == 0:
+        return s
+    candidates = np.argsort(-s, kind="stable")[:n]
+    m = len(query.keypoints)
+    keep = np.unique(np.linspace(0, m - 1, min(m, config.rerank_keypoints)).round().astype(np.int64))
+    sub = Features(query.keypoints[keep], query.descriptors[keep]) if m else query
+    verified = np.array([verified_matches(sub, features(int(i)), ratio) for i in candidates], float)
+    good = verified >= config.rerank_min_inliers
+    s[candidates[good]] = 1.0 + verified[good] / max(float(verified.max()), 1.0)
+    s[candidates[~good]] -= 3.0
+    return s
 
 
 def select_references(
