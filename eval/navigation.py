@@ -1,7 +1,7 @@
 """Navigation protocol: success rate, SPL and soft SPL of an agent over point-goal episodes.
 
 ``vgpnav eval navigation SCENE --agent astar|oracle|ppo:PATH --backbone B [--perception pixels|model]
---episodes N --out DIR
+[--perception-mode temporal|paper] --episodes N --out DIR
 [--seed S] [--size WxH] [--max-steps N] [--workers N] [--ray [ADDRESS]]`` writes
 ``DIR/report.json`` (settings, aggregates, one record per episode with its per-frame pose errors),
 ``DIR/report.md`` (settings, failure labels, summary, per-episode table, plots), ``DIR/errors.png``
@@ -34,7 +34,11 @@ from vgpnav_env.agents import AGENTS, agent_choices, parse_agent, ppo
 from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.arguments import positive_int_arg, seed_arg, size_arg
-from vgpnav_env.eval.perception_runs import add_backbone_arguments, backbone_options
+from vgpnav_env.eval.perception_runs import (
+    add_backbone_arguments,
+    add_perception_mode_argument,
+    backbone_options,
+)
 from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
 from vgpnav_env.eval.workers import Workers, add_worker_arguments, note, workers_from_args
 from vgpnav_env.measures import MEASURES, Measure
@@ -369,27 +373,28 @@ def episode_task(state: Navigator, item: tuple[int, int]) -> tuple[EpisodeRecord
 
 
 def navigation_settings(
-    scene: str, plan: AgentPlan, env_kwargs: dict[str, Any], episodes: int, seed: int
+    scene: str,
+    plan: AgentPlan,
+    env_kwargs: dict[str, Any],
+    episodes: int,
+    seed: int,
+    perception_mode: str = "temporal",
 ) -> dict[str, Any]:
     """The head of the report's settings table (:func:`~vgpnav_env.eval.report.run_settings` ends it)."""
     import inspect
 
     from vgpnav_env.envs.pointgoal import PointGoalEnv
-    from vgpnav_env.wrappers import VGPNavObservation
 
     defaults = {k: p.default for k, p in inspect.signature(PointGoalEnv).parameters.items()}
     size = env_kwargs["image_size"]
+    mode = perception_mode if plan.backbone not in (None, "model") else plan.backbone or "none"
     return {
         "scene": scene,
         "layout": env_kwargs["layout"],
         "agent": plan.name,
         "image size": f"{size[0]}x{size[1]}",
         "backbone": plan.backbone or "none",
-        "perception mode": "model"
-        if plan.backbone == "model"
-        else VGPNavObservation.perception_mode
-        if plan.backbone
-        else "none",
+        "perception mode": mode,
         "max steps": env_kwargs.get("max_steps", defaults["max_steps"]),
         "success radius (m)": env_kwargs.get("success_distance", defaults["success_distance"]),
         "episodes": episodes,
@@ -466,8 +471,9 @@ def evaluate_navigation(
         if own:
             workers.close()
     records = [record for record, _ in results]
+    mode = "model" if plan.backbone == "model" else wrapper_kwargs.get("perception_mode", "temporal")
     settings = {
-        **navigation_settings(scene, plan, kwargs, episodes, seed),
+        **navigation_settings(scene, plan, kwargs, episodes, seed, mode),
         **run_settings(clock, workers.where, workers.cpu_seconds),
     }
     report = {
@@ -478,6 +484,7 @@ def evaluate_navigation(
         "backbone": plan.backbone,
         "seed": seed,
         "image_size": list(size),
+        "perception_mode": mode if plan.backbone else None,
         **summarize(records),
         "records": [r.as_dict() for r in records],
     }
@@ -603,6 +610,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + "; ".join(f"{k}: {v}" for k, v in PERCEPTION_KINDS.items())
         + " (default: pixels for astar, as trained for ppo)",
     )
+    add_perception_mode_argument(parser)
     parser.add_argument("--episodes", type=positive_int_arg, default=20, help="number of start/goal pairs")
     parser.add_argument("--out", required=True, type=Path, help="report directory")
     parser.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i")
@@ -638,7 +646,7 @@ def run(args: argparse.Namespace) -> int:
             out_dir=args.out,
             env_kwargs={"max_steps": args.max_steps},
             database_dir=args.database,
-            wrapper_kwargs={"backbone_options": options},
+            wrapper_kwargs={"backbone_options": options, "perception_mode": args.perception_mode},
             workers=workers,
             perception=args.perception,
         )

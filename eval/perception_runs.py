@@ -120,6 +120,19 @@ def add_backbone_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str = "temporal") -> None:
+    """``--perception-mode`` (a :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name)."""
+    from vgpnav_env.perception.pipeline import PERCEPTION_MODES
+
+    modes = "; ".join(f"{k}: {v}" for k, v in PERCEPTION_MODES.items())
+    parser.add_argument(
+        "--perception-mode",
+        choices=list(PERCEPTION_MODES),
+        default=default,
+        help=f"default {default}. {modes}",
+    )
+
+
 def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
     """The ``make_backbone`` options of ``--model`` / ``--weights``; a one-line ValueError when they
     are missing for ``--backbone learned``, or given for another backbone."""

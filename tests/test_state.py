@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vgpnav_env.perception.state import GateConfig, OdometryState
+from vgpnav_env.perception.state import EKFConfig, EKFState, GateConfig, OdometryState
 from vgpnav_env.robot import Action
 
 RNG = np.random.default_rng(0)
@@ -76,3 +76,119 @@ def test_continuous_actions_keep_the_estimate_and_estimates_stay_in_bounds():
     np.testing.assert_array_equal(s.estimate, (10.0, -3.0, 0.5))
     with pytest.raises(ValueError, match="stall_threshold"):
         state(stall_threshold=-1.0)
+
+
+# -- the EKF (temporal mode) ------------------------------------------------------------------
+
+
+def ekf(**kwargs) -> EKFState:
+    s = EKFState(LOW, HIGH, **kwargs)
+    s.reset(IMAGES[0], fallback=(1.0, 2.0, 0.0))
+    return s
+
+
+def drive(s: EKFState, actions, fixes=None) -> None:
+    """Predict and correct along ``actions``, the images changing every step (nothing blocked)."""
+    fixes = fixes or [None] * len(actions)
+    for n, (action, fix) in enumerate(zip(actions, fixes, strict=True)):
+        s.predict(action, IMAGES[1 + n % 3])
+        s.correct(fix)
+
+
+def test_ekf_takes_the_first_fix_and_tracks_by_odometry_with_growing_covariance():
+    s = ekf()
+    s.correct(None)
+    np.testing.assert_array_equal(s.estimate, (1.0, 2.0, 0.0))
+    assert s.tracking_pose() is None and s.fix == "none"  # no fix yet: relocalize globally
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    assert s.fix == "reset" and s.localized
+    np.testing.assert_allclose(s.covariance, s.config.fix_covariance)
+    drive(s, [Action.FORWARD] * 4 + [Action.TURN_LEFT])
+    np.testing.assert_allclose(s.estimate, (1.0, 0.0, np.radians(15)), atol=1e-9)
+    assert s.fix == "none" and not s.localized
+    P = s.covariance
+    cfg = s.config
+    # Along-track variance: the fix's plus 4 forward steps'; the cross-track one also grows with
+    # the heading uncertainty (4 x 0.25 m lever arm); the yaw's with one turn.
+    assert P[0, 0] == pytest.approx(cfg.fix_sigma**2 + 4 * cfg.forward_sigma**2)
+    assert P[1, 1] > cfg.fix_sigma**2 + 4 * cfg.lateral_sigma**2
+    assert P[2, 2] == pytest.approx(np.radians(cfg.fix_sigma_deg) ** 2 + np.radians(cfg.turn_sigma_deg) ** 2)
+    np.testing.assert_allclose(s.tracking_pose(), s.estimate)
+
+
+def test_ekf_fix_within_the_gate_corrects_and_shrinks_the_covariance():
+    s = ekf()
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    drive(s, [Action.FORWARD] * 4)
+    before = s.covariance
+    s.predict(Action.FORWARD, IMAGES[2])
+    s.correct(np.array([1.3, 0.05, 0.02]))  # 5 cm off the prediction (1.25, 0, 0)
+    assert s.fix == "accepted" and s.localized
+    assert 1.25 < s.estimate[0] < 1.3 and 0 < s.estimate[1] < 0.05
+    assert np.trace(s.covariance[:2, :2]) < np.trace(before[:2, :2])
+
+
+def test_ekf_blocked_forward_step_moves_nothing():
+    s = ekf()
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    s.predict(Action.FORWARD, IMAGES[0])  # the same image: blocked
+    s.correct(None)
+    np.testing.assert_allclose(s.estimate, (0.0, 0.0, 0.0))
+
+
+def test_ekf_rejects_a_gross_fix_and_relocalizes_after_repeated_consistent_ones():
+    """A teleport (kidnapping): fixes 3 m away, consistent with each other under the odometry,
+    are rejected until ``kidnap_fixes`` (3) of them agree; then the estimate jumps to them."""
+    s = ekf()
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    drive(s, [Action.FORWARD] * 2, [np.array([0.25, 0.0, 0.0]), np.array([0.5, 0.0, 0.0])])
+    far = np.array([0.5, 3.0, 0.0])  # the robot now stands here
+    outcomes = []
+    for n in range(4):
+        s.predict(Action.FORWARD, IMAGES[1 + n % 3])
+        far = far + np.array([0.25, 0.0, 0.0])
+        s.correct(far)
+        outcomes.append(s.fix)
+    assert outcomes == ["rejected", "rejected", "reset", "accepted"]
+    np.testing.assert_allclose(s.estimate[:2], far[:2], atol=0.01)
+
+
+def test_ekf_inconsistent_outliers_never_relocalize():
+    s = ekf()
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    rng = np.random.default_rng(1)
+    for n in range(6):  # wrong fixes scattered metres apart: each one starts a new candidate
+        s.predict(Action.TURN_LEFT, IMAGES[1 + n % 3])
+        s.correct(np.array([*rng.uniform(2.0, 8.0, 2), 0.0]))
+        assert s.fix == "rejected"
+    np.testing.assert_allclose(s.estimate[:2], (0.0, 0.0), atol=1e-9)
+
+
+def test_ekf_bridges_a_textureless_stretch_and_takes_the_next_fix():
+    """20 forward steps without a fix (a textureless corridor): the estimate follows the odometry,
+    the covariance grows (yet stays within tracking), and a fix 0.3 m off -- the drift a real robot
+    accumulates there -- passes the widened gate."""
+    s = ekf()
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    drive(s, [Action.FORWARD] * 20)
+    np.testing.assert_allclose(s.estimate, (5.0, 0.0, 0.0), atol=1e-9)
+    assert s.tracking_pose() is not None
+    s.predict(Action.FORWARD, IMAGES[1])
+    s.correct(np.array([5.25 - 0.3, 0.1, 0.0]))
+    assert s.fix == "accepted"
+
+
+def test_ekf_hands_over_to_global_retrieval_when_uncertain():
+    s = ekf(config=EKFConfig(track_max_sigma=0.2))
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    n = 0
+    while s.tracking_pose() is not None:
+        s.predict(Action.FORWARD, IMAGES[1 + n % 3])
+        n += 1
+    # The cross-track sigma grows fastest (the fix's 2 deg heading sigma times the distance driven,
+    # plus 1.5 cm per step): it passes 0.2 m after 21 steps of 0.25 m.
+    assert n == 21
+    sigma = np.sqrt(np.linalg.eigvalsh(s.covariance[:2, :2]).max())
+    assert 0.2 < sigma < 0.22
+    with pytest.raises(ValueError, match="positive"):
+        EKFConfig(fix_sigma=0.0)

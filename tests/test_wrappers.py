@@ -178,7 +178,11 @@ def test_motion_gate_rejects_a_pose_jump_until_it_persists(database, gate: bool)
     backbone = ShiftedBackbone()
     kwargs = {} if gate else {"motion_gate": None}
     env = VGPNavObservation(
-        gym.make(ENV_ID, scene="home", image_size=HOME_SIZE), backbone, database=database, **kwargs
+        gym.make(ENV_ID, scene="home", image_size=HOME_SIZE),
+        backbone,
+        database=database,
+        perception_mode="paper",
+        **kwargs,
     )
     obs, _ = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
     start = obs["pose"].copy()
@@ -228,3 +232,85 @@ def test_blocked_forward_steps_do_not_move_the_dead_reckoned_pose(database):
                 break
     assert moved >= 1 and blocked == 2
     env.close()
+
+
+# -- the temporal mode ------------------------------------------------------------------------
+
+
+def temporal_env(database, backbone) -> VGPNavObservation:
+    env = gym.make(ENV_ID, scene="home", image_size=HOME_SIZE)
+    return VGPNavObservation(env, backbone, database=database, perception_mode="temporal")
+
+
+#: A known trajectory through the home's open middle: ahead, a left turn, ahead, two right turns.
+TRAJECTORY = [1, 1, 2, 1, 1, 3, 3, 1, 1]
+
+
+def test_temporal_mode_tracks_a_known_trajectory(database):
+    backbone = FlakyBackbone()
+    env = temporal_env(database, backbone)
+    assert env.perception_mode == "temporal"
+    obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    assert info["perception"]["fix"] == "reset"  # the first fix starts the estimate
+    sources, errors = [], []
+    for action in TRAJECTORY:
+        obs, _, _, _, info = env.step(action)
+        sources.append(info["perception"]["source"])
+        errors.append(info["localization_error_m"])
+        assert info["perception"]["fix"] == "accepted" and obs["localized"] == 1
+        assert info["tracked"] == (info["perception"]["source"] == "tracking")
+    assert sources.count("tracking") >= len(TRAJECTORY) - 1  # references around the prediction
+    assert max(errors) < 0.05
+    sigma = np.sqrt(np.diag(env.pose_state.covariance))
+    assert sigma[0] < 0.05 and sigma[1] < 0.05 and np.degrees(sigma[2]) < 2.0
+    env.close()
+
+
+def test_temporal_mode_bridges_a_textureless_stretch(database):
+    """Eight frames without a usable match (a textureless stretch) are carried by the EKF's action
+    odometry within 5 cm; the first textured frame after them is tracked and accepted."""
+    backbone = FlakyBackbone()
+    env = temporal_env(database, backbone)
+    obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    backbone.fail = True
+    for action in [1, 2, 1, 3, 1, 1, 3, 2]:
+        obs, _, _, _, info = env.step(action)
+        assert obs["localized"] == 0 and info["perception"]["fix"] == "none"
+        assert info["localization_error_m"] < 0.05
+    backbone.fail = False
+    obs, _, _, _, info = env.step(1)
+    assert obs["localized"] == 1 and info["perception"]["source"] == "tracking"
+    assert info["localization_error_m"] < 0.05
+    env.close()
+
+
+def test_temporal_mode_detects_a_teleport_and_relocalizes(database):
+    """The robot is carried 2 m away: the fixes there contradict the estimate and are neither taken
+    in nor mapped, until the third consistent one relocalizes (``EKFConfig.kidnap_fixes``)."""
+    backbone = FlakyBackbone()
+    env = temporal_env(database, backbone)
+    obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    for action in [1, 1]:
+        obs, _, _, _, info = env.step(action)
+    env.unwrapped.robot.set_pose((5.5, 2.5, 0.0))
+    before = env.perceiver.map.logodds.copy()
+    fixes = []
+    for action in [2, 3, 2, 3]:
+        obs, _, _, _, info = env.step(action)
+        fixes.append(info["perception"]["fix"])
+        if fixes[-1] == "rejected":
+            assert obs["localized"] == 0 and info["localization_error_m"] > 1.5
+            np.testing.assert_array_equal(env.perceiver.map.logodds, before)  # nothing fused
+    assert fixes == ["rejected", "rejected", "reset", "accepted"]
+    assert info["localization_error_m"] < 0.05 and info["relocalized"] + info["tracked"] == 1
+    env.close()
+
+
+def test_wrapper_rejects_an_unknown_perception_mode(database):
+    with pytest.raises(ValueError, match="paper, temporal"):
+        VGPNavObservation(
+            gym.make(ENV_ID, scene="home", image_size=HOME_SIZE),
+            "simulated",
+            database=database,
+            perception_mode="dream",
+        )

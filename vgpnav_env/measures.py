@@ -60,12 +60,16 @@ class EnvState:
 
 @dataclass(frozen=True)
 class EstimateState:
-    """The observed pose estimate (x, y, yaw), whether perception localized this frame, and the
-    true pose."""
+    """The observed pose estimate (x, y, yaw), whether the pose state took in a perceived pose this
+    frame, and the true pose; ``fix``: what the pose state did with the perceived pose (a
+    :data:`~vgpnav_env.perception.state.FIX_OUTCOMES` name) and ``source``: where perception's
+    references came from (``tracking`` or ``global``)."""
 
     estimate: NDArray[np.float64]
     localized: bool
     true_pose: NDArray[np.float64]
+    fix: str = "accepted"
+    source: str = "global"
 
 
 class Measure:
@@ -327,3 +331,56 @@ class Localized(Measure):
     def episode_value(cls, values: Sequence[Any]) -> Any:
         """The fraction of frames that were not localized (None without frames)."""
         return 1.0 - float(np.mean(values)) if len(values) else None
+
+
+@register_measure
+class Tracked(Measure):
+    """Whether this frame's pose was taken in from tracking (references around the predicted pose);
+    episodes report the tracked fraction of the frames the agent acted on."""
+
+    uuid = "tracked"
+    scope = "estimate"
+    record = "tracked_fraction"
+    per_frame = True
+    summary = "mean_tracked_fraction"
+    column = "tracked"
+
+    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
+        self.metric = bool(state.localized and state.source == "tracking")
+
+
+@register_measure
+class Relocalized(Measure):
+    """Whether this frame's pose was taken in from global retrieval (relocalization: the first fix,
+    after tracking failed or a kidnapping); episodes report the fraction of frames."""
+
+    uuid = "relocalized"
+    scope = "estimate"
+    record = "relocalized_fraction"
+    per_frame = True
+    summary = "mean_relocalized_fraction"
+    column = "relocalized"
+
+    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
+        self.metric = bool(state.localized and state.source == "global")
+
+
+#: A pose estimate farther off than this (metres) is a gross error (the issue's 0.5 m target).
+GROSS_POSE_ERROR_M = 0.5
+
+
+@register_measure
+class GrossPoseError(Measure):
+    """Whether the observed pose estimate is more than :data:`GROSS_POSE_ERROR_M` off the true pose;
+    episodes report the fraction of frames."""
+
+    uuid = "gross_pose_error"
+    scope = "estimate"
+    depends_on = ("localization_error_m",)
+    record = "gross_pose_fraction"
+    per_frame = True
+    summary = "mean_gross_pose_fraction"
+    column = "err > 0.5 m"
+
+    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
+        self.metric = bool(measures["localization_error_m"].metric > GROSS_POSE_ERROR_M)

@@ -2,10 +2,19 @@
 
 The wrapper runs the VGP-Nav :class:`~vgpnav_env.perception.pipeline.Perceiver` on every camera
 image against the scene's database run, keeps the robot's pose between frames in a
-:class:`~vgpnav_env.perception.state.PoseState` (:class:`~vgpnav_env.perception.state.OdometryState`:
-dead reckoning by the robot's motion model, blocked steps seen in the pixels, the odometry gate
-``motion_gate`` that rejects a perceived pose jumping away from the prediction) and replaces the
-raw observation by a navigation state:
+:class:`~vgpnav_env.perception.state.PoseState` and replaces the raw observation by a navigation
+state. ``perception_mode`` (:data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES`):
+
+- ``"temporal"`` (default): :class:`~vgpnav_env.perception.state.EKFState` fuses action odometry
+  and the perceived poses (Mahalanobis-gated, kidnapping detected); while it is certain, the
+  perceiver tracks (references around the predicted camera pose, global retrieval when that
+  fails); a frame is fused into the map only when the EKF accepts its pose.
+- ``"paper"``: every frame perceived on its own (global retrieval) and fused when it localizes;
+  :class:`~vgpnav_env.perception.state.OdometryState` carries the pose between fixes (dead
+  reckoning by the robot's motion model, blocked steps seen in the pixels, the odometry gate
+  ``motion_gate`` that rejects a perceived pose jumping away from the prediction).
+
+The observation:
 
 ``Dict(pose=Box (3,) float32, goal_rel=Box (2,) float32, map=Box uint8 (1, S, S), localized=Discrete(2))``
 
@@ -15,20 +24,24 @@ raw observation by a navigation state:
 - ``goal_rel``: (distance m, bearing rad counter-clockwise from the estimated heading) of the goal.
 - ``map``: egocentric crop of the fused occupancy map (``S`` x ``S`` pixels of ``map_resolution``
   metres, row 0 ahead, columns to the right; 255 occupied, 128 free, 0 unknown), channels first.
-- ``localized``: 1 if this frame's pose came from perception, 0 if it was carried forward.
+- ``localized``: 1 if this frame's perceived pose was taken in by the pose state, 0 if the pose was
+  carried forward (lost, or a perceived pose the EKF rejected).
 
 Agents that plan in the world frame read the wrapper's attributes (``env.get_wrapper_attr``):
 ``fused_map``, the live fused :class:`~vgpnav_env.perception.occupancy.LogOddsMap` (``occupied()``,
-``spec``), and ``pose_state``; the world goal is the estimated pose plus ``goal_rel``. The full
-:class:`PerceptionResult` of the last frame (points, timings) is ``last_result``.
+``spec``), and ``pose_state`` (its ``covariance``: None in paper mode); the world goal is the
+estimated pose plus ``goal_rel``. The full :class:`PerceptionResult` of the last frame (points,
+timings) is ``last_result``.
 
 ``info`` is for evaluation only: it keeps the env's entries (true pose etc.) and adds
 ``perception`` (the frame's status, reason, ``T_wc``, scale, scale source, anchored ground height,
-references and confident pairs), ``estimated_pose``, ``obstacles`` (bool grid of occupied cells of
-the fused map) with ``map_spec`` (its ``GridSpec``), and the metrics of the ``"estimate"``
-measures of :mod:`vgpnav_env.measures`: ``localization_error_m`` (horizontal error of the observed
-``pose``) and ``localized``. Timings stay out of it so
-that ``info`` is comparable between runs.
+references and confident pairs, reference ``source`` -- tracking or global -- and the pose
+state's ``fix``, :data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), ``estimated_pose``,
+``obstacles`` (bool grid of occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``),
+and the metrics of the ``"estimate"`` measures of :mod:`vgpnav_env.measures`:
+``localization_error_m`` (horizontal error of the observed ``pose``), ``localized``, ``tracked``,
+``relocalized`` and ``gross_pose_error``. Timings stay out of it so that ``info`` is comparable
+between runs.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
@@ -54,8 +67,15 @@ from vgpnav_env.measures import EstimateState, Measurements
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.occupancy import LogOddsMap
-from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
-from vgpnav_env.perception.state import STALL_THRESHOLD, GateConfig, OdometryState, PoseState
+from vgpnav_env.perception.pipeline import PERCEPTION_MODES, Perceiver, PerceptionConfig, PerceptionResult
+from vgpnav_env.perception.state import (
+    STALL_THRESHOLD,
+    EKFConfig,
+    EKFState,
+    GateConfig,
+    OdometryState,
+    PoseState,
+)
 from vgpnav_env.robot import FOVY_DEG, base_pose
 
 logger = logging.getLogger(__name__)
@@ -132,11 +152,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     ``backbone``: a :class:`Backbone`, or a registry name built by ``make_backbone(backbone,
     database=..., **backbone_options)`` (e.g. ``learned`` with ``model`` and ``weights_path``).
+    ``perception_mode``: a :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name;
+    ``motion_gate`` applies to ``paper``, ``ekf`` (an :class:`EKFConfig`) to ``temporal``.
     """
-
-    #: The perception mode (a :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name):
-    #: ``paper``, every frame perceived on its own; between fixes the pose state carries the pose.
-    perception_mode = "paper"
 
     def __init__(
         self,
@@ -154,6 +172,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         motion_gate: tuple[float, float, float, float] | None = MOTION_GATE,
         stall_threshold: float = STALL_THRESHOLD,
         backbone_options: Mapping[str, Any] | None = None,
+        perception_mode: str = "temporal",
+        ekf: EKFConfig | None = None,
     ) -> None:
         # Recorded for env re-creation from the spec; an open database is recorded by its directory.
         gym.utils.RecordConstructorArgs.__init__(
@@ -169,8 +189,16 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             motion_gate=motion_gate,
             stall_threshold=stall_threshold,
             backbone_options=backbone_options,
+            perception_mode=perception_mode,
+            ekf=ekf,
         )
         gym.Wrapper.__init__(self, env)
+        if perception_mode not in PERCEPTION_MODES:
+            raise ValueError(
+                f"unknown perception_mode {perception_mode!r}; allowed: {', '.join(PERCEPTION_MODES)}"
+            )
+        #: The perception mode (a :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name).
+        self.perception_mode = perception_mode
         base = env.unwrapped
         if not hasattr(base, "camera_T_wc"):
             raise TypeError(f"VGPNavObservation wraps VGPNav/PointGoal-v0, got {type(base).__name__}")
@@ -207,15 +235,17 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
         self.observation_space = navigation_space(base, self.map_size)
         lo, hi = self.observation_space["pose"].low, self.observation_space["pose"].high
-        self.pose_state: PoseState = OdometryState(
-            lo,
-            hi,
-            discrete=base.action_mode == "discrete",
-            forward_step=base.forward_step,
-            turn_step=base.turn_step,
-            gate=None if motion_gate is None else GateConfig(*motion_gate),
-            stall_threshold=stall_threshold,
-        )
+        motion = {
+            "discrete": base.action_mode == "discrete",
+            "forward_step": base.forward_step,
+            "turn_step": base.turn_step,
+            "stall_threshold": stall_threshold,
+        }
+        if perception_mode == "temporal":
+            self.pose_state: PoseState = EKFState(lo, hi, config=ekf, **motion)
+        else:
+            gate = None if motion_gate is None else GateConfig(*motion_gate)
+            self.pose_state = OdometryState(lo, hi, gate=gate, **motion)
         self.last_result: PerceptionResult | None = None
         self.measurements = Measurements("estimate")
 
@@ -257,7 +287,14 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.pose_state.predict(action, obs["rgb"])
         privileged = self._privileged(info["T_wc"], info["depth"])
-        result = self.perceiver.perceive(obs["rgb"], privileged, gate=self.pose_state.gate())
+        predicted = self.pose_state.tracking_pose()
+        result = self.perceiver.perceive(
+            obs["rgb"],
+            privileged,
+            gate=self.pose_state.gate(),
+            predicted=None if predicted is None else self.env.unwrapped.camera_T_wc(predicted),
+            fuse=self.perception_mode == "paper",
+        )
         new_obs, info = self._observe(obs, info, result, first=False)
         return new_obs, reward, terminated, truncated, info
 
@@ -265,8 +302,11 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult, first: bool
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         """The navigation observation (and the evaluation info) after the pose state took in ``result``."""
-        localized = result.localized and result.T_wc is not None
-        self.pose_state.correct(base_pose(result.T_wc) if localized else None)
+        perceived = result.localized and result.T_wc is not None
+        self.pose_state.correct(base_pose(result.T_wc) if perceived else None)
+        localized = self.pose_state.localized
+        if localized and not first and self.perception_mode != "paper":
+            self.perceiver.fuse(result)  # the map takes only frames whose pose the estimator trusts
         estimate = self.pose_state.estimate
         self.last_result = result
         occupancy = self.perceiver.map
@@ -274,7 +314,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.observation_space, estimate, obs["goal"], occupancy, localized, self.map_resolution
         )
         obstacles = occupancy.occupied()
-        state = EstimateState(new_obs["pose"], localized, np.asarray(info["pose"]))
+        state = EstimateState(
+            new_obs["pose"], localized, np.asarray(info["pose"]), self.pose_state.fix, result.source
+        )
         (self.measurements.reset if first else self.measurements.update)(state)
         info = dict(info)
         info.update(
@@ -287,6 +329,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 "z_ground": result.z_ground,
                 "references": result.references,
                 "n_confident_pairs": result.n_confident_pairs,
+                "source": result.source,
+                "fix": self.pose_state.fix,
             },
             estimated_pose=estimate.copy(),
             obstacles=obstacles,

@@ -48,7 +48,13 @@ from vgpnav_env.perception.motion_averaging import (
 )
 from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
 from vgpnav_env.perception.points import depth_points
-from vgpnav_env.perception.retrieval import RetrievalConfig, geometric_rerank, select_references
+from vgpnav_env.perception.retrieval import (
+    RetrievalConfig,
+    TrackingConfig,
+    geometric_rerank,
+    select_references,
+    tracked_references,
+)
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
     GroundEstimate,
@@ -95,7 +101,11 @@ TIMING_KEYS = (
 )
 #: Perception modes (DESIGN.md "Perception modes") -> what they do; the registry every setting and
 #: report names a mode from.
-PERCEPTION_MODES = {"paper": "every frame perceived on its own, as published (ground anchored once)"}
+PERCEPTION_MODES = {
+    "paper": "every frame perceived on its own, as published (ground anchored once)",
+    "temporal": "tracking: references around the pose an EKF predicts from action odometry, global "
+    "retrieval to relocalize; the EKF gates the fixes, detects kidnapping; only trusted frames are mapped",
+}
 
 
 @dataclass(frozen=True)
@@ -112,6 +122,7 @@ class PerceptionConfig:
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
     verify: VerifyConfig = field(default_factory=VerifyConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     camera_height: float = CAMERA_HEIGHT
 
     def __post_init__(self) -> None:
@@ -155,7 +166,8 @@ class PerceptionResult:
     ``retrieved``: the references retrieval chose (the first round; ``references`` may come from
     a second round). ``verdict``: what the images say about the pose (None when no pose was
     verified) and ``confidence`` its :attr:`~vgpnav_env.perception.verify.Verdict.confidence`
-    (0 when lost): how much to trust the pose.
+    (0 when lost): how much to trust the pose. ``source``: where the references came from,
+    ``tracking`` (around the caller's predicted pose) or ``global`` (retrieval over the database).
     """
 
     status: str
@@ -176,6 +188,7 @@ class PerceptionResult:
     retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     verdict: Verdict | None = None
     confidence: float = 0.0
+    source: str = "global"
 
     @property
     def localized(self) -> bool:
@@ -186,7 +199,7 @@ class PerceptionResult:
 class _Localization:
     """Stages 1-3 of one frame: references, backbone output and motion-averaging result (the pose
     in W, its translation at the rays' scale); ``reason`` is a lost reason, "" when localized;
-    ``retrieved``: the first round's references."""
+    ``retrieved``: the first round's references; ``source``: tracking or global."""
 
     references: NDArray[np.int64]
     backbone: BackboneOutput | None = None
@@ -195,6 +208,7 @@ class _Localization:
     reason: str = ""
     detail: str = ""
     retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    source: str = "global"
 
     @property
     def ok(self) -> bool:
@@ -301,23 +315,69 @@ class Perceiver:
         return [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
 
     def perceive(
-        self, rgb: NDArray[np.uint8], privileged: Privileged | None = None, gate: PoseGate | None = None
+        self,
+        rgb: NDArray[np.uint8],
+        privileged: Privileged | None = None,
+        gate: PoseGate | None = None,
+        *,
+        predicted: NDArray[np.float64] | None = None,
+        fuse: bool = True,
     ) -> PerceptionResult:
         """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`.
 
         With a ``gate``, a pose outside it is lost ("inconsistent motion"), nothing is fused.
+        ``predicted`` (tracking): a predicted camera pose ``T_wc`` (4x4); the references are chosen
+        among the database cameras near it (:func:`tracked_references`), and when that frame is
+        lost (or no camera is near) global retrieval tries again. ``fuse=False``: the caller fuses
+        the frame later if it trusts it (:meth:`fuse`).
         """
         clock = _Clock()
-        loc = self._localize(rgb, privileged, clock)  # stages 1-3
+        result, points_w = None, None
+        if predicted is not None:
+            result, points_w = self._attempt(rgb, privileged, gate, clock, predicted)
+        if result is None or not result.localized:
+            result, points_w = self._attempt(rgb, privileged, gate, clock, None)
+        if result.localized and fuse:
+            with clock.stage("occupancy"):
+                result = replace(result, classes=self._fuse(result, points_w))
+        return replace(result, timings=clock.stop())
+
+    def fuse(self, result: PerceptionResult) -> PointClasses:
+        """Fuse a localized frame's metric points into :attr:`map` (stage 5); their classes."""
+        return self._fuse(result, result.points_w.astype(np.float64))
+
+    def _fuse(self, result: PerceptionResult, points_w: NDArray[np.float64]) -> PointClasses:
+        occ = self.config.occupancy
+        return self.map.update(
+            points_w,
+            result.z_ground,
+            self.config.camera_height,
+            camera_xy=result.T_wc[:2, 3],
+            free_tol=occ.free_tol,
+            obstacle_min=occ.obstacle_min,
+        )
+
+    def _attempt(
+        self,
+        rgb: NDArray[np.uint8],
+        privileged: Privileged | None,
+        gate: PoseGate | None,
+        clock: _Clock,
+        predicted: NDArray[np.float64] | None,
+    ) -> tuple[PerceptionResult, NDArray[np.float64] | None]:
+        """Stages 1-4 and verification of one frame (not fused: ``classes`` None) and its metric
+        points (None when lost); references around ``predicted`` (None: global retrieval); a
+        tracking attempt without near cameras is lost."""
+        loc = self._localize(rgb, privileged, clock, predicted)  # stages 1-3
         if not loc.ok:
             loc = self._single_pair_fallback(loc, clock)
         if not loc.ok:
-            return _lost(loc, clock)
+            return _lost(loc, clock), None
         with clock.stage("scale_recovery"):  # stage 4
             loc, pose = self._recover_scale(loc, gate)
             points_w = self._metric_points(loc.backbone, pose.T_wc, pose.scale.scale) if loc.ok else None
         if not loc.ok:
-            return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground)
+            return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground), None
         with clock.stage("verification"):
             verdict = self._verify(loc, pose)
         if not verdict.ok:
@@ -326,30 +386,21 @@ class Perceiver:
                 reason=verdict.reason,
                 detail=f"{verdict.detail} ({loc.detail})" if loc.detail else verdict.detail,
             )
-            return _lost(
+            lost = _lost(
                 loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
             )
-        with clock.stage("occupancy"):  # stage 5
-            occ = self.config.occupancy
-            classes = self.map.update(
-                points_w,
-                pose.z_ground,
-                self.config.camera_height,
-                camera_xy=pose.T_wc[:2, 3],
-                free_tol=occ.free_tol,
-                obstacle_min=occ.obstacle_min,
-            )
-        return PerceptionResult(
+            return lost, None
+        result = PerceptionResult(
             status="localized",
             reason="",
             T_wc=pose.T_wc,
             points_w=points_w.astype(np.float32),
-            classes=classes,
+            classes=None,
             references=loc.references,
             scale=pose.scale.scale,
             scale_source=pose.scale.source,
             z_ground=pose.z_ground,
-            timings=clock.stop(),
+            timings={},
             motion=loc.motion,
             ground=pose.ground,
             backbone=loc.backbone,
@@ -358,7 +409,9 @@ class Perceiver:
             retrieved=loc.retrieved,
             verdict=verdict,
             confidence=verdict.confidence,
+            source=loc.source,
         )
+        return result, points_w
 
     def _verify(self, loc: _Localization, pose: _MetricPose) -> Verdict:
         """:func:`verify_pose` of the metric pose against the frame's references, with the rival
@@ -372,10 +425,15 @@ class Perceiver:
         return verify_pose(pose.T_wc, T_wi, out, self.camera, cfg.verify, rivals=rivals, camera_z=camera_z)
 
     def _localize(
-        self, rgb: NDArray[np.uint8], privileged: Privileged | None, clock: _Clock
+        self,
+        rgb: NDArray[np.uint8],
+        privileged: Privileged | None,
+        clock: _Clock,
+        predicted: NDArray[np.float64] | None = None,
     ) -> _Localization:
         """Stages 1-3 (retrieval, backbone, motion averaging), with the second round of
-        :func:`~vgpnav_env.perception.verify.second_round_references` when the first is weak."""
+        :func:`~vgpnav_env.perception.verify.second_round_references` when the first is weak;
+        ``predicted``: references around that camera pose (tracking) instead of the whole database."""
         rgb = np.asarray(rgb)
         expected = (self.camera.height, self.camera.width, 3)
         if rgb.shape != expected or rgb.dtype != np.uint8:
@@ -383,13 +441,18 @@ class Perceiver:
         db, cfg = self.database, self.config
         with clock.stage("retrieval"):
             sims = np.nan_to_num(db.index.similarity(rgb), nan=-1.0, posinf=-1.0, neginf=-1.0)
-            if cfg.retrieval.rerank:
-                sift = db.index.sift
-                query = rootsift(rgb, sift)
-                sims = geometric_rerank(sims, query, db.reference_features, cfg.retrieval, sift.ratio)
-            refs = select_references(sims, db.poses, cfg.retrieval)
+            if predicted is not None:
+                refs = tracked_references(sims, db.poses, predicted, cfg.retrieval, cfg.tracking)
+                source = "tracking"
+            else:
+                if cfg.retrieval.rerank:
+                    sift = db.index.sift
+                    query = rootsift(rgb, sift)
+                    sims = geometric_rerank(sims, query, db.reference_features, cfg.retrieval, sift.ratio)
+                refs, source = select_references(sims, db.poses, cfg.retrieval), "global"
         if len(refs) == 0:
-            return _Localization(refs, reason="too few matches", detail="empty database")
+            detail = "empty database" if predicted is None else "no database camera near the predicted pose"
+            return _Localization(refs, reason="too few matches", detail=detail, source=source)
         retrieved = refs
         out, motion = self._round(rgb, refs, privileged, clock)
         if cfg.averaging.method == "weighted":
@@ -421,11 +484,13 @@ class Perceiver:
         n_conf = int((out.confidence > 0).sum())
         if n_conf == 0:
             detail = f"no reference pair passed the backbone (matches {out.n_matches.tolist()})"
-            return _Localization(refs, out, reason="too few matches", detail=detail, retrieved=retrieved)
+            return _Localization(
+                refs, out, reason="too few matches", detail=detail, retrieved=retrieved, source=source
+            )
         if not motion.ok:
             reason = "too few matches" if motion.reason == "too few references" else "no consensus"
-            return _Localization(refs, out, motion, n_conf, reason, motion.reason, retrieved)
-        return _Localization(refs, out, motion, n_conf, retrieved=retrieved)
+            return _Localization(refs, out, motion, n_conf, reason, motion.reason, retrieved, source)
+        return _Localization(refs, out, motion, n_conf, retrieved=retrieved, source=source)
 
     def _round(
         self, rgb: NDArray[np.uint8], refs: NDArray[np.int64], privileged: Privileged | None, clock: _Clock
@@ -579,6 +644,7 @@ def _lost(loc: _Localization, clock: _Clock, **kw) -> PerceptionResult:
         n_confident_pairs=loc.n_confident_pairs,
         detail=loc.detail,
         retrieved=loc.retrieved,
+        source=loc.source,
         **kw,
     )
 

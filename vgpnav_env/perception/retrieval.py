@@ -585,6 +585,42 @@ def select_references(
     return valid[selected].astype(np.int64)
 
 
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Reference selection around a predicted pose (the "temporal" perception mode): the database
+    cameras within ``radius`` metres and ``max_angle_deg`` degrees of the predicted camera
+    (:func:`nearby_cameras`) are the pool; fewer than ``min_candidates`` of them: global retrieval."""
+
+    radius: float = 2.0
+    max_angle_deg: float = 45.0
+    min_candidates: int = 3
+
+    def __post_init__(self) -> None:
+        if self.radius <= 0 or not 0 < self.max_angle_deg <= 180 or self.min_candidates < 1:
+            raise ValueError(
+                f"need radius > 0 m, max_angle_deg in (0, 180] and min_candidates >= 1, got {self}"
+            )
+
+
+def tracked_references(
+    similarity: ArrayLike,
+    T_w: ArrayLike,
+    predicted: ArrayLike,
+    config: RetrievalConfig | None = None,
+    tracking: TrackingConfig | None = None,
+) -> NDArray[np.int64]:
+    """:func:`select_references` restricted to the database cameras near the ``predicted`` camera
+    pose ``T_wc`` (4, 4): tracking picks references around the pose a state estimator predicts
+    instead of the whole database. Empty when fewer than ``tracking.min_candidates`` are near."""
+    tracking = tracking or TrackingConfig()
+    T = np.asarray(T_w, float)
+    near = nearby_cameras(T, predicted, tracking.radius, tracking.max_angle_deg).index
+    if len(near) < tracking.min_candidates:
+        return np.zeros(0, np.int64)
+    chosen = select_references(np.asarray(similarity, float)[near], T[near], config)
+    return near[chosen].astype(np.int64)
+
+
 class NearbyCameras(NamedTuple):
     """Cameras near a pose: ``index`` (ascending), centre ``distance`` (metres) and ``cos_angle``
     (cosine of the angle between the optical axes), one entry per camera."""

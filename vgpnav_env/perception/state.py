@@ -8,9 +8,10 @@ Per frame the caller (the VGP-Nav wrapper) runs::
     state.correct(base_pose(result.T_wc) if result.localized else None)
     state.estimate                       # (x, y, yaw) in W, metres and radians
 
-:class:`PoseState` is that interface; a temporal estimator (an EKF over x, y, yaw fusing action
-odometry, visual odometry and global fixes with covariances, DESIGN.md "temporal" mode) implements
-it in place of :class:`OdometryState`.
+:class:`PoseState` is that interface. :class:`EKFState` (the "temporal" perception mode): an EKF
+over x, y, yaw fusing action odometry and global fixes with their covariances, Mahalanobis gating,
+kidnapping detection, and a :meth:`~PoseState.tracking_pose` around which the perceiver chooses
+references while the estimate is certain.
 
 :class:`OdometryState` (today's behaviour): the last fix carried forward by the robot's motion
 model (:func:`vgpnav_env.robot.predict_pose`, nominal steps) for discrete actions. A forward step
@@ -26,6 +27,7 @@ centre). Estimates are clipped to the box [``low``, ``high``].
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -33,11 +35,21 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from vgpnav_env.geometry import wrap_angle
 from vgpnav_env.perception.verify import PoseGate
 from vgpnav_env.robot import FORWARD_STEP, TURN_STEP_DEG, Action, predict_pose
 
+logger = logging.getLogger(__name__)
+
 #: Mean absolute grey-level change (of a 40x30 thumbnail) below which a forward step was blocked.
 STALL_THRESHOLD = 0.5
+#: What a pose state did with a frame's measurement -> meaning (reports define their labels from it).
+FIX_OUTCOMES: dict[str, str] = {
+    "none": "no perceived pose: the estimate was carried by odometry",
+    "accepted": "the perceived pose agreed with the estimate and corrected it",
+    "rejected": "the perceived pose contradicted the estimate (outside its gate) and was ignored",
+    "reset": "the estimate was set to the perceived pose (first fix, or a detected kidnapping)",
+}
 
 
 @dataclass(frozen=True)
@@ -80,13 +92,50 @@ class PoseState(Protocol):
 
     @property
     def localized(self) -> bool:
-        """Whether the last :meth:`correct` had a perceived pose."""
+        """Whether the last :meth:`correct` took in a perceived pose."""
+
+    @property
+    def fix(self) -> str:
+        """What the last :meth:`correct` did with its measurement (:data:`FIX_OUTCOMES`)."""
+
+    @property
+    def covariance(self) -> NDArray[np.float64] | None:
+        """The estimate's 3x3 covariance over (x, y, yaw) (m^2, m rad, rad^2); None: not kept."""
+
+    def tracking_pose(self) -> NDArray[np.float64] | None:
+        """The predicted (x, y, yaw) to choose this frame's references around (tracking), or None:
+        global retrieval (relocalization). Call after :meth:`predict`."""
 
 
 def _thumbnail(rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
     """A 40x30 grey thumbnail (float grey levels) for detecting a blocked step from pixels."""
     grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
     return cv2.resize(grey, (40, 30), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+class _StallDetector:
+    """Whether the camera image stayed the same since the previous one (mean absolute grey change of
+    the thumbnails below ``threshold`` levels): after a forward step, the step was blocked."""
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = float(threshold)
+        self._thumbnail: NDArray[np.float32] | None = None
+
+    def reset(self, rgb: NDArray[np.uint8]) -> None:
+        self._thumbnail = _thumbnail(rgb)
+
+    def stalled(self, rgb: NDArray[np.uint8]) -> bool:
+        thumbnail = _thumbnail(rgb)
+        stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.threshold
+        self._thumbnail = thumbnail
+        return stalled
+
+
+def _effective_action(action: int | NDArray, stalled: bool) -> Action:
+    """The discrete action the robot carried out: a forward step whose image did not change was
+    blocked, the robot stayed (STOP)."""
+    action = Action(int(action))
+    return Action.STOP if stalled and action == Action.FORWARD else action
 
 
 class OdometryState:
@@ -121,7 +170,7 @@ class OdometryState:
         self._have_fix = False
         self._localized = False
         self._moves_since_fix = np.zeros(2)  # forward steps, turns
-        self._thumbnail: NDArray[np.float32] | None = None
+        self._stall = _StallDetector(self.stall_threshold)
 
     @property
     def estimate(self) -> NDArray[np.float64]:
@@ -131,6 +180,17 @@ class OdometryState:
     def localized(self) -> bool:
         return self._localized
 
+    @property
+    def fix(self) -> str:
+        return "accepted" if self._localized else "none"
+
+    @property
+    def covariance(self) -> None:
+        return None
+
+    def tracking_pose(self) -> None:
+        return None
+
     def reset(self, rgb: NDArray[np.uint8], fallback: ArrayLike) -> None:
         self._estimate = np.zeros(3)
         self._fallback = np.asarray(fallback, float)
@@ -138,18 +198,14 @@ class OdometryState:
         self._have_fix = False
         self._localized = False
         self._moves_since_fix = np.zeros(2)
-        self._thumbnail = _thumbnail(rgb)
+        self._stall.reset(rgb)
 
     def predict(self, action: int | NDArray | None, rgb: NDArray[np.uint8]) -> None:
-        thumbnail = _thumbnail(rgb)
-        stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.stall_threshold
-        self._thumbnail = thumbnail
+        stalled = self._stall.stalled(rgb)
         if not self.discrete or action is None:
             self._predicted = self._estimate.copy() if self._have_fix else None
             return
-        action = Action(int(action))
-        if stalled and action == Action.FORWARD:
-            action = Action.STOP  # the image did not change: the step was blocked, the robot stayed
+        action = _effective_action(action, stalled)
         if self._have_fix:
             self._predicted = predict_pose(self._estimate, action, self.forward_step, self.turn_step)
         self._moves_since_fix += (action == Action.FORWARD, action in (Action.TURN_LEFT, Action.TURN_RIGHT))
@@ -177,3 +233,200 @@ class OdometryState:
             estimate = self._fallback
         self._estimate = np.clip(estimate, self.low, self.high)
         self._predicted = None
+
+
+@dataclass(frozen=True)
+class EKFConfig:
+    """Noise model and thresholds of :class:`EKFState` (metres, degrees).
+
+    Process (action odometry, per action): ``forward_sigma`` along and ``lateral_sigma`` across the
+    heading per forward step, ``turn_sigma_deg`` per turn; a continuous command adds
+    ``continuous_sigma`` / ``continuous_sigma_deg`` per step. Measurement (a global VGP-Nav fix):
+    ``fix_sigma`` per horizontal axis, ``fix_sigma_deg`` in yaw. A fix whose squared Mahalanobis
+    distance to the prediction exceeds ``gate_chi2`` (3 degrees of freedom; 14.2 = 99.7 %) is
+    rejected. ``kidnap_fixes`` consecutive rejected fixes that agree with each other (moved by the
+    same odometry) reset the estimate to the last of them: the robot was moved (or the estimate
+    had drifted away). Tracking (references around the prediction) while the position standard
+    deviation (largest axis) is at most ``track_max_sigma`` and the yaw's at most
+    ``track_max_sigma_deg``; beyond, global retrieval relocalizes.
+    """
+
+    forward_sigma: float = 0.03
+    lateral_sigma: float = 0.015
+    turn_sigma_deg: float = 1.5
+    continuous_sigma: float = 0.05
+    continuous_sigma_deg: float = 5.0
+    fix_sigma: float = 0.05
+    fix_sigma_deg: float = 2.0
+    gate_chi2: float = 14.2
+    kidnap_fixes: int = 3
+    track_max_sigma: float = 0.5
+    track_max_sigma_deg: float = 20.0
+
+    def __post_init__(self) -> None:
+        values = (self.forward_sigma, self.lateral_sigma, self.turn_sigma_deg, self.continuous_sigma,
+                  self.continuous_sigma_deg, self.fix_sigma, self.fix_sigma_deg, self.gate_chi2,
+                  self.track_max_sigma, self.track_max_sigma_deg)  # fmt: skip
+        if min(values) <= 0 or self.kidnap_fixes < 1:
+            raise ValueError(f"EKF noise and thresholds must be positive and kidnap_fixes >= 1, got {self}")
+
+    @property
+    def fix_covariance(self) -> NDArray[np.float64]:
+        """R: the 3x3 covariance of a global fix."""
+        return np.diag([self.fix_sigma**2, self.fix_sigma**2, np.radians(self.fix_sigma_deg) ** 2])
+
+
+class EKFState:
+    """An extended Kalman filter over the planar pose (x, y, yaw) in W (the "temporal" mode).
+
+    Process model: the robot's motion model (:func:`~vgpnav_env.robot.predict_pose`) for the
+    commanded discrete action, noise per :class:`EKFConfig`; a forward step whose image did not
+    change was blocked and moves nothing (as :class:`OdometryState`). Measurements: perceived poses
+    with covariance ``config.fix_covariance``, Mahalanobis-gated (no :class:`PoseGate`: the perceiver
+    is not constrained, so that fixes contradicting the estimate still reach :meth:`correct` for
+    kidnapping detection). Before the first fix the estimate is the fallback with an unbounded
+    covariance and the first fix is taken as it is. Estimates are clipped to [``low``, ``high``].
+    """
+
+    def __init__(
+        self,
+        low: ArrayLike,
+        high: ArrayLike,
+        *,
+        discrete: bool = True,
+        forward_step: float = FORWARD_STEP,
+        turn_step: float = float(np.radians(TURN_STEP_DEG)),
+        config: EKFConfig | None = None,
+        stall_threshold: float = STALL_THRESHOLD,
+    ) -> None:
+        if stall_threshold < 0:
+            raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {stall_threshold}")
+        self.low, self.high = np.asarray(low, float), np.asarray(high, float)
+        self.discrete = bool(discrete)
+        self.forward_step, self.turn_step = float(forward_step), float(turn_step)
+        self.config = config or EKFConfig()
+        self._stall = _StallDetector(stall_threshold)
+        self._x = np.zeros(3)
+        self._P = np.full((3, 3), np.inf)
+        self._have_fix = False
+        self._fix = "none"
+        self._candidate: NDArray[np.float64] | None = None  # the last rejected fix, moved by odometry
+        self._candidate_P = np.zeros((3, 3))
+        self._candidate_count = 0
+
+    @property
+    def estimate(self) -> NDArray[np.float64]:
+        return np.clip(self._x, self.low, self.high)
+
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        return self._P.copy()
+
+    @property
+    def localized(self) -> bool:
+        return self._fix in ("accepted", "reset")
+
+    @property
+    def fix(self) -> str:
+        return self._fix
+
+    def reset(self, rgb: NDArray[np.uint8], fallback: ArrayLike) -> None:
+        self._stall.reset(rgb)
+        self._x = np.asarray(fallback, float).copy()
+        self._P = np.full((3, 3), np.inf)
+        self._have_fix = False
+        self._fix = "none"
+        self._candidate, self._candidate_count = None, 0
+
+    def _process(self, x: NDArray[np.float64], P: NDArray[np.float64], action: Action | None):
+        """(x, P) moved by ``action`` (None: a continuous command of unknown extent)."""
+        cfg = self.config
+        if action is None:
+            Q = np.diag([cfg.continuous_sigma**2] * 2 + [np.radians(cfg.continuous_sigma_deg) ** 2])
+            return x, P + Q
+        if action == Action.FORWARD:
+            c, s = np.cos(x[2]), np.sin(x[2])
+            F = np.array([[1.0, 0.0, -self.forward_step * s], [0.0, 1.0, self.forward_step * c], [0, 0, 1]])
+            G = np.array([[c, -s], [s, c], [0.0, 0.0]])
+            Q = G @ np.diag([cfg.forward_sigma**2, cfg.lateral_sigma**2]) @ G.T
+        elif action in (Action.TURN_LEFT, Action.TURN_RIGHT):
+            F, Q = np.eye(3), np.diag([0.0, 0.0, np.radians(cfg.turn_sigma_deg) ** 2])
+        else:
+            return x, P
+        return predict_pose(x, action, self.forward_step, self.turn_step), F @ P @ F.T + Q
+
+    def predict(self, action: int | NDArray | None, rgb: NDArray[np.uint8]) -> None:
+        stalled = self._stall.stalled(rgb)
+        act = _effective_action(action, stalled) if self.discrete and action is not None else None
+        if self._have_fix:
+            self._x, self._P = self._process(self._x, self._P, act)
+        if self._candidate is not None:
+            self._candidate, self._candidate_P = self._process(self._candidate, self._candidate_P, act)
+
+    def gate(self) -> None:
+        return None
+
+    def tracking_pose(self) -> NDArray[np.float64] | None:
+        cfg = self.config
+        if not self._have_fix:
+            return None
+        position_sigma = float(np.sqrt(np.linalg.eigvalsh(self._P[:2, :2]).max()))
+        yaw_sigma = float(np.degrees(np.sqrt(self._P[2, 2])))
+        if position_sigma > cfg.track_max_sigma or yaw_sigma > cfg.track_max_sigma_deg:
+            return None
+        return self.estimate
+
+    def mahalanobis2(self, measured: ArrayLike) -> float:
+        """Squared Mahalanobis distance of a perceived pose from the estimate (inf before a fix)."""
+        if not self._have_fix:
+            return float("inf")
+        return _mahalanobis2(measured, self._x, self._P + self.config.fix_covariance)
+
+    def correct(self, measured: NDArray[np.float64] | None) -> None:
+        cfg = self.config
+        if measured is None:
+            self._fix = "none"
+            return
+        z = np.asarray(measured, float)
+        R = cfg.fix_covariance
+        if not self._have_fix:
+            self._take(z)
+            return
+        if self.mahalanobis2(z) <= cfg.gate_chi2:
+            S = self._P + R
+            K = self._P @ np.linalg.inv(S)
+            self._x = self._x + K @ _innovation(z, self._x)
+            self._x[2] = wrap_angle(self._x[2])
+            I_K = np.eye(3) - K
+            self._P = I_K @ self._P @ I_K.T + K @ R @ K.T  # Joseph form: stays symmetric positive
+            self._fix = "accepted"
+            self._candidate, self._candidate_count = None, 0
+            return
+        self._fix = "rejected"
+        agrees = (
+            self._candidate is not None
+            and _mahalanobis2(z, self._candidate, self._candidate_P + R) <= cfg.gate_chi2
+        )
+        self._candidate_count = self._candidate_count + 1 if agrees else 1
+        self._candidate, self._candidate_P = z, R.copy()
+        if self._candidate_count >= cfg.kidnap_fixes:
+            logger.debug("kidnapping: %d consistent fixes off the estimate", self._candidate_count)
+            self._take(z)
+
+    def _take(self, z: NDArray[np.float64]) -> None:
+        """Set the estimate to the fix ``z`` (first fix or relocalization)."""
+        self._x, self._P = z.copy(), self.config.fix_covariance.copy()
+        self._have_fix = True
+        self._fix = "reset"
+        self._candidate, self._candidate_count = None, 0
+
+
+def _innovation(z: ArrayLike, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    d = np.asarray(z, float) - x
+    d[2] = wrap_angle(d[2])
+    return d
+
+
+def _mahalanobis2(z: ArrayLike, x: NDArray[np.float64], S: NDArray[np.float64]) -> float:
+    d = _innovation(z, x)
+    return float(d @ np.linalg.solve(S, d))
