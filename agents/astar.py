@@ -3,7 +3,11 @@
 The agent plans on a 2D obstacle grid (``True`` = obstacle; free and unknown cells are both
 traversable: optimistic planning) inflated by the robot radius, from a pose estimate
 (x, y, yaw) to a goal (x, y), all in W (metres, radians). It turns toward a waypoint about
-``lookahead`` metres ahead on the path when the heading error exceeds half a turn step and
+``lookahead`` metres ahead on the path (the farthest one in a straight traversable line, else the
+path point ``min_waypoint`` metres ahead along the path) when the heading error exceeds half a
+turn step -- ``reverse_turn`` turn steps to undo its last turn while two steps ahead are clear
+(hysteresis: with 15 degree turns a path between two headings otherwise makes it zigzag left,
+forward, right, forward) -- and
 otherwise drives forward; it stops when the (estimated) goal distance is below ``goal_radius``.
 It replans when the map, the goal or the grid changes, when it strays from the path, and when a
 forward action made no progress (it then marks the cell ahead as an obstacle).
@@ -53,6 +57,8 @@ class AStarAgent:
         turn_step_deg: float = TURN_STEP_DEG,
         min_progress: float = 0.4,
         off_path_distance: float = 0.5,
+        reverse_turn: float = 0.9,
+        min_waypoint: float = 0.3,
     ) -> None:
         if robot_radius <= 0 or goal_radius <= 0 or lookahead <= 0 or forward_step <= 0:
             raise ValueError("robot_radius, goal_radius, lookahead and forward_step must be positive metres")
@@ -64,6 +70,11 @@ class AStarAgent:
         self.turn_step = float(np.radians(turn_step_deg))
         self.min_progress = float(min_progress)
         self.off_path_distance = float(off_path_distance)
+        if not 0.5 <= reverse_turn < 1.0 or min_waypoint <= 0:
+            raise ValueError(f"need reverse_turn in [0.5, 1) turn steps and min_waypoint > 0 m, got "
+                             f"{reverse_turn}, {min_waypoint}")  # fmt: skip
+        self.reverse_turn = float(reverse_turn)
+        self.min_waypoint = float(min_waypoint)
         self.reset()
 
     def reset(self) -> None:
@@ -79,6 +90,7 @@ class AStarAgent:
         self._plan_map: NDArray[np.bool_] | None = None
         self._last_action: Action | None = None
         self._last_pose: NDArray[np.float64] | None = None
+        self._last_turn: Action | None = None
 
     # -- planning --------------------------------------------------------------------------
     def traversable(
@@ -154,14 +166,31 @@ class AStarAgent:
         for k in range(j, i, -1):
             if line_of_sight(self._free, self._spec, xy, dense[k]):
                 return dense[k]
-        return dense[min(i + 1, len(dense) - 1)]
+        # Nothing ahead in a straight line (e.g. just beside the path in a narrow passage): a point
+        # some way ahead along the path, not the next one, which may lie beside the robot.
+        k = int(np.searchsorted(along, along[i] + min(self.min_waypoint, self.lookahead), side="right")) - 1
+        return dense[min(max(k, i + 1), len(dense) - 1)]
 
     def _turn_or_forward(self, pose: NDArray[np.float64], target: NDArray[np.float64]) -> Action:
         dx, dy = target - pose[:2]
         error = float(wrap_angle(np.arctan2(dy, dx) - pose[2]))
-        if abs(error) > 0.5 * self.turn_step:
-            return Action.TURN_LEFT if error > 0 else Action.TURN_RIGHT
+        turn = Action.TURN_LEFT if error > 0 else Action.TURN_RIGHT
+        reverse = self._last_turn is not None and turn != self._last_turn
+        threshold = self.reverse_turn if reverse and self._clear_ahead(pose) else 0.5
+        if abs(error) > threshold * self.turn_step:
+            self._last_turn = turn
+            return turn
         return Action.FORWARD
+
+    def _clear_ahead(self, pose: NDArray[np.float64]) -> bool:
+        """Whether two forward steps along the current heading stay on traversable cells (the
+        hysteresis only keeps a heading that does not lead toward an obstacle)."""
+        if self._free is None:
+            return True
+        ahead = pose[:2] + 2.0 * self.forward_step * np.array([np.cos(pose[2]), np.sin(pose[2])])
+        return self._spec.contains(self._spec.world_to_cell(ahead)) and line_of_sight(
+            self._free, self._spec, pose[:2], ahead
+        )
 
     def act(self, pose: ArrayLike, obstacles: ArrayLike, spec: GridSpec, goal: ArrayLike) -> Action:
         """Next discrete :class:`~vgpnav_env.robot.Action` from the estimated ``pose``,

@@ -76,13 +76,23 @@ class PerceptionAStar:
     """The A* agent on the VGP-Nav wrapper's estimated pose and fused obstacle map.
 
     Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing) and
-    ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles).
-    Until the first localized frame of an episode it turns in place (there is no pose to plan
-    from); after ``max_blind_steps`` dead-reckoned steps it turns in place for at most one full
-    turn to look for a view that localizes, then goes on by dead reckoning.
+    ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles)
+    and ``pose_state``. Until the first localized frame of an episode it turns in place (there is
+    no pose to plan from), one full turn at a time with ``explore_steps`` forward steps between
+    them (a new viewpoint). When the pose becomes uncertain -- its position standard deviation
+    (the pose state's covariance, largest axis) above ``max_sigma`` metres, or without a
+    covariance (paper mode) after ``max_blind_steps`` dead-reckoned steps -- it turns in place for
+    at most one full turn to look for a view that localizes, then goes on by dead reckoning.
     """
 
-    def __init__(self, env: gym.Env, max_blind_steps: int = 8, **agent_kwargs: Any) -> None:
+    def __init__(
+        self,
+        env: gym.Env,
+        max_blind_steps: int = 8,
+        max_sigma: float = 0.3,
+        explore_steps: int = 3,
+        **agent_kwargs: Any,
+    ) -> None:
         self.env = env
         base = env.unwrapped
         agent_kwargs.setdefault("robot_radius", base.robot_radius)
@@ -90,6 +100,8 @@ class PerceptionAStar:
         agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
         self.agent = AStarAgent(**agent_kwargs)
         self.max_blind_steps = int(max_blind_steps)
+        self.max_sigma = float(max_sigma)
+        self.explore_steps = int(explore_steps)
         self.turns_per_circle = int(np.ceil(2.0 * np.pi / base.turn_step))
         self.reset()
 
@@ -99,14 +111,24 @@ class PerceptionAStar:
         self.blind = 0  # consecutive frames without localization
         self.searched = 0  # look-around turns in the current blind spell
 
+    def _uncertain(self) -> bool:
+        """Whether the pose is too uncertain to drive on (see the class docstring)."""
+        covariance = self.env.get_wrapper_attr("pose_state").covariance
+        if covariance is None:
+            return self.blind > self.max_blind_steps
+        return bool(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()) > self.max_sigma)
+
     def act(self, obs: dict[str, Any]) -> Action:
         if int(np.asarray(obs["localized"]).reshape(-1)[0]):
             self.seen, self.blind, self.searched = True, 0, 0
         else:
             self.blind += 1
-        looking = self.blind > self.max_blind_steps and self.searched < self.turns_per_circle
-        if not self.seen or looking:
-            self.searched += int(self.seen)
+        if not self.seen:  # no pose yet: full turns in place, a few steps ahead between them
+            phase = self.searched % (self.turns_per_circle + self.explore_steps)
+            self.searched += 1
+            return Action.TURN_LEFT if phase < self.turns_per_circle else Action.FORWARD
+        if self.searched < self.turns_per_circle and self._uncertain():
+            self.searched += 1
             return Action.TURN_LEFT
         x, y, yaw = np.asarray(obs["pose"], float)
         dist, bearing = np.asarray(obs["goal_rel"], float)

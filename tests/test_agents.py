@@ -118,6 +118,26 @@ def test_agent_replans_when_map_changes_and_turns_toward_goal():
     assert agent.act((1.0, 3.8, 0.0), occ, spec, (1.0, 4.0)) == STOP
 
 
+@pytest.mark.parametrize("bearing_deg", [22.0, 37.5, 50.0])
+def test_agent_follows_a_straight_path_between_two_headings_without_zigzag(bearing_deg: float):
+    """A 5 m straight path whose direction lies between two 15 degree headings: without hysteresis
+    the agent turned after nearly every step (22 deg: 38 actions, 17 turns, alternating L F R F);
+    now at most 7 turns, 28 actions (20 forward steps plus turns and the stop)."""
+    occ, spec = room(with_wall=False)
+    goal = 1.0 + 5.0 * np.array([np.cos(np.radians(bearing_deg)), np.sin(np.radians(bearing_deg))])
+    agent = AStarAgent(robot_radius=RADIUS)
+    robot = KinematicRobot(occ, spec, (1.0, 1.0, 0.0))
+    actions = []
+    for _ in range(100):
+        actions.append(agent.act(robot.pose, occ, spec, goal))
+        if actions[-1] == STOP:
+            break
+        robot.step(actions[-1])
+    turns = sum(a in (TURN_LEFT, TURN_RIGHT) for a in actions)
+    assert actions[-1] == STOP and len(actions) <= 28 and turns <= 7, actions
+    assert np.linalg.norm(robot.pose[:2] - goal) < 0.35 and robot.collisions == 0
+
+
 def test_agent_bad_inputs():
     occ, spec = room()
     agent = AStarAgent()
