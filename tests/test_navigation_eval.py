@@ -170,6 +170,9 @@ def test_summary_aggregates_and_counts_failures():
         "mean_localization_error_m",
         "p95_localization_error_m",
         "mean_lost_fraction",
+        "mean_tracked_fraction",
+        "mean_relocalized_fraction",
+        "mean_gross_pose_fraction",
         "failures",
     ]
 
