@@ -197,6 +197,37 @@ def test_classical_backbone_localizes(database: Database, query, rerank: int, n_
         assert ok or (r.status == "lost" and r.reason in LOST_REASONS), (r.reason, r.detail)
 
 
+def test_tracking_chooses_references_around_the_predicted_pose(database: Database, query) -> None:
+    """``predicted`` (temporal mode): references among the database cameras within 2 m / 45 deg
+    of the predicted camera; a prediction with no camera near falls back to global retrieval.
+    Deferred fusion (``fuse=False`` then :meth:`Perceiver.fuse`) maps what fusing at once maps."""
+    run, depth = query
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
+    tracker, now, later = (
+        Perceiver(database, make_backbone("simulated", seed=3), config=config) for _ in range(3)
+    )
+    for p in (tracker, now, later):
+        p.initialize(run.images[:1], priv[:1])
+    for i in range(len(run)):
+        predicted = run.poses[i].copy()
+        predicted[:2, 3] += (0.2, -0.1)  # a prediction 22 cm off
+        tracked = tracker.perceive(run.images[i], priv[i], predicted=predicted)
+        assert tracked.localized and tracked.source == "tracking"
+        centres = database.poses[tracked.references, :3, 3]
+        assert np.all(np.linalg.norm(centres - predicted[:3, 3], axis=1) <= config.tracking.radius)
+        assert errors(tracked.T_wc, run.poses[i])[0] < 0.01
+        deferred = later.perceive(run.images[i], priv[i], fuse=False)
+        assert deferred.localized and deferred.classes is None
+        later.fuse(deferred)
+        now.perceive(run.images[i], priv[i])
+    np.testing.assert_allclose(later.map.logodds, now.map.logodds, atol=1e-4)
+    far = run.poses[0].copy()
+    far[:3, 3] += (50.0, 50.0, 0.0)
+    result = tracker.perceive(run.images[0], priv[0], predicted=far)
+    assert result.localized and result.source == "global"
+
+
 @pytest.mark.parametrize("image", ["black", "grey", "noise"])
 def test_featureless_image_is_lost_not_an_exception(database: Database, image: str) -> None:
     h, w = database.camera.height, database.camera.width
