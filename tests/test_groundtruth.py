@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOM_X, ROOM_Y, TINY_BOXES, WALL_H
+import trimesh
+from conftest import ROOM_X, ROOM_Y, TINY_BOXES, WALL_H, WALL_T, textured_box
 
-from vgpnav_env.grid import geodesic_distance, largest_component, path_length, shortest_path
+from vgpnav_env.envs.body import PlanarRobot, add_robot
+from vgpnav_env.grid import erode, geodesic_distance, largest_component, path_length, shortest_path
 from vgpnav_env.groundtruth import GroundTruthMap, ground_truth_map, surface_points
+from vgpnav_env.scenes.model import build_mjspec
+from vgpnav_env.scenes.scene import Scene, SceneMesh
 
 # Radii that are not multiples of the 5 cm cells, so no cell centre sits exactly at the radius.
 RADIUS = 0.22
@@ -20,6 +24,15 @@ def expected_navigable(radius: float, boxes: bool) -> float:
         for _, (w, d, _h) in TINY_BOXES.values():
             area -= w * d + 2 * radius * (w + d) + np.pi * radius**2
     return area
+
+
+def boundary(radius: float, boxes: bool) -> float:
+    """Length (m) of the boundary of the region of ``expected_navigable``."""
+    length = 2 * (ROOM_X - 2 * radius) + 2 * (ROOM_Y - 2 * radius)
+    if boxes:
+        for _, (w, d, _h) in TINY_BOXES.values():
+            length += 2 * (w + d) + 2 * np.pi * radius
+    return length
 
 
 def test_surface_points_density_and_bounds(tiny_scene):
@@ -42,7 +55,9 @@ def test_navigable_area_empty_and_furnished(empty_room, tiny_scene, radius):
     for scene, boxes in ((empty_room, False), (tiny_scene, True)):
         gt = ground_truth_map(scene, robot_radius=radius)
         expected = expected_navigable(radius, boxes)
-        assert gt.area_m2(gt.navigable) == pytest.approx(expected, rel=0.02), scene.key
+        # Cells count whole by their centre's exact clearance: the boundary sits up to half a cell
+        # (0.025 m) off the exact one (here 0.02 m inwards at 0.18 m: -3%).
+        assert gt.area_m2(gt.navigable) == pytest.approx(expected, abs=0.025 * boundary(radius, boxes))
         # Free = room interior minus box footprints, to within one boundary cell row (~4%).
         footprints = sum(w * d for _, (w, d, _h) in TINY_BOXES.values()) if boxes else 0.0
         assert gt.area_m2(gt.free) == pytest.approx(ROOM_X * ROOM_Y - footprints, rel=0.04)
@@ -95,6 +110,34 @@ def test_thin_wall_does_not_leak(walled_room):
     # Free space (radius 0) also stays split along the wall except through the gap.
     free_path = shortest_path(gt.free, gt.spec, start, goal)
     assert path_length(free_path) > 2 * np.hypot(2.0, 1.0) - 0.1
+
+
+def test_gap_narrower_than_the_robot_is_not_navigable(empty_room):
+    """A wall across y = 2.5 with a 0.352 m gap (x in [1.999, 2.351]), each face 1 mm inside a cell:
+    the obstacle cell centres either side (x = 1.975, 2.375) are 0.4 m apart, so erosion from cell
+    centres alone keeps the gap's middle column (x = 2.175) and joins the two halves, but a robot
+    of radius 0.2 m does not fit. Navigable cells follow the collision parts: none is in contact."""
+    wall = empty_room.mesh("wall_south").material
+    parts = []
+    for name, (x0, x1) in (("gap_left", (0.0, 1.999)), ("gap_right", (2.351, ROOM_X))):
+        extents, centre = (x1 - x0, WALL_T, WALL_H), ((x0 + x1) / 2, 2.5, WALL_H / 2)
+        box = trimesh.creation.box(
+            extents=extents, transform=trimesh.transformations.translation_matrix(centre)
+        )
+        parts.append(SceneMesh(name, "wall", textured_box(extents, centre, wall), wall, [box]))
+    scene = Scene("tiny", "gap", "checker", [*empty_room.meshes, *parts])
+    gt = ground_truth_map(scene, robot_radius=0.2)
+    start, goal = (1.0, 1.5), (1.0, 3.5)
+    assert shortest_path(erode(gt.free, 0.2, gt.spec), gt.spec, start, goal) is not None
+    assert shortest_path(gt.navigable, gt.spec, start, goal) is None
+    # Away from the gap and the walls navigable is unchanged (room halves 4 x 2.45 m less 0.2 m).
+    assert gt.area_m2(gt.navigable) == pytest.approx(2 * (ROOM_X - 0.4) * (2.45 - 0.4), rel=0.03)
+    spec = build_mjspec(scene)
+    add_robot(spec, radius=0.2, height=1.3)
+    robot = PlanarRobot(spec.compile())
+    centres = gt.spec.cell_to_world(np.argwhere(gt.navigable))
+    assert not any(robot.in_collision([x, y, 0.0]) for x, y in centres)
+    assert robot.in_collision([2.175, 2.5, 0.0])
 
 
 def test_straight_path_in_empty_room(empty_room):

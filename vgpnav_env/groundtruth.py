@@ -4,7 +4,9 @@ Occupancy by height (DESIGN.md): a cell is an *obstacle* if any surface lies abo
 height in the obstacle band (by default the robot's: ``vgpnav_env.robot.OBSTACLE_MIN`` = 0.15 m to
 the robot height); it is *floor* if an upward-facing surface lies within ``floor_tolerance`` of
 z = 0 over it; *free* = floor and not obstacle; *navigable* = free cells where the robot disc
-fits (free eroded by the robot radius).
+fits: free eroded by the robot radius (cell centre to cell centre) whose centre also lies at least
+the robot radius from the exact footprint of every convex collision part in the band (the geometry
+MuJoCo collides the robot's cylinder with), so no navigable cell puts the robot in contact.
 
 Obstacles come from two sources: densely sampled surfaces (several points per cell even on
 thin vertical walls, so walls are continuous obstacle lines) and the filled footprints of the
@@ -118,28 +120,72 @@ def _slab_footprint(part: trimesh.Trimesh, low: float, high: float) -> NDArray[n
     return np.concatenate(pts, axis=0)[:, :2]
 
 
-def _fill_convex(spec: GridSpec, xy: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Cells whose centre lies inside (or on) the convex hull of ``xy``."""
-    from matplotlib.path import Path
+def _footprint_hull(xy: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """Counter-clockwise vertices (K, 2) of the convex hull of ``xy``; for a flat footprint (zero
+    area) its two extreme points (K = 2, a segment); None without points."""
     from scipy.spatial import ConvexHull, QhullError
 
-    grid = np.zeros(spec.shape, bool)
-    if len(xy) < 3:
-        return grid
-    try:
-        hull = Path(xy[ConvexHull(xy).vertices])
-    except QhullError:  # flat footprint (zero area): its surface points mark it already
-        return grid
-    (r0, c0), (r1, c1) = spec.world_to_cell(xy.min(axis=0)), spec.world_to_cell(xy.max(axis=0))
+    if len(xy) == 0:
+        return None
+    if len(xy) >= 3:
+        try:
+            return xy[ConvexHull(xy).vertices]
+        except QhullError:
+            pass
+    d = xy - xy.mean(axis=0)
+    t = d @ np.linalg.svd(d, full_matrices=False)[2][0]
+    return xy[[int(np.argmin(t)), int(np.argmax(t))]]
+
+
+def _window(spec: GridSpec, hull: NDArray[np.float64], margin: float) -> tuple[NDArray, NDArray] | None:
+    """(rows, cols) index grids of the cells around ``hull`` grown by ``margin`` metres (None: off grid)."""
+    (r0, c0), (r1, c1) = (
+        spec.world_to_cell(hull.min(axis=0) - margin),
+        spec.world_to_cell(hull.max(axis=0) + margin),
+    )
     r0, c0 = max(r0, 0), max(c0, 0)
     r1, c1 = min(r1, spec.shape[0] - 1), min(c1, spec.shape[1] - 1)
     if r1 < r0 or c1 < c0:
+        return None
+    return np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
+
+
+def _fill_convex(spec: GridSpec, hull: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Cells whose centre lies inside (or on) a convex polygon (K >= 3 vertices; a segment fills nothing:
+    its surface points mark it already)."""
+    from matplotlib.path import Path
+
+    grid = np.zeros(spec.shape, bool)
+    window = _window(spec, hull, 0.0)
+    if len(hull) < 3 or window is None:
         return grid
-    rows, cols = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
+    rows, cols = window
     centres = spec.cell_to_world(np.stack([rows.ravel(), cols.ravel()], axis=1))
-    inside = hull.contains_points(centres, radius=1e-9)
+    inside = Path(hull).contains_points(centres, radius=1e-9)
     grid[rows.ravel()[inside], cols.ravel()[inside]] = True
     return grid
+
+
+def _clear_of(spec: GridSpec, hulls: list[NDArray[np.float64]], radius: float) -> NDArray[np.bool_]:
+    """Cells whose centre is at least ``radius`` metres (exactly, not cell-to-cell) from every convex
+    footprint of ``hulls`` (counter-clockwise (K, 2) vertices, K = 2 a segment): where the robot disc
+    touches no collision part."""
+    clear = np.ones(spec.shape, bool)
+    for hull in hulls:
+        window = _window(spec, hull, radius)
+        if window is None:
+            continue
+        rows, cols = window
+        p = spec.cell_to_world(np.stack([rows, cols], axis=-1))[..., None, :]  # (h, w, 1, 2)
+        a, b = hull, np.roll(hull, -1, axis=0)
+        ab = b - a
+        t = np.clip(np.sum((p - a) * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-12), 0.0, 1.0)
+        dist = np.linalg.norm(p - (a + t[..., None] * ab), axis=-1).min(axis=-1)
+        if len(hull) >= 3:
+            cross = ab[:, 0] * (p[..., 1] - a[:, 1]) - ab[:, 1] * (p[..., 0] - a[:, 0])
+            dist[(cross >= 0.0).all(axis=-1)] = 0.0
+        clear[rows, cols] &= dist >= radius
+    return clear
 
 
 def _close_pinholes(mask: NDArray[np.bool_], max_cells: int = 2) -> NDArray[np.bool_]:
@@ -199,6 +245,7 @@ def ground_truth_map(
     floor_spacing = resolution / 4.0
     obstacle = np.zeros(spec.shape, bool)
     floor = np.zeros(spec.shape, bool)
+    hulls: list[NDArray[np.float64]] = []
     for sm in scene.meshes:
         mesh = sm.mesh
         z = mesh.triangles[:, :, 2]
@@ -209,14 +256,17 @@ def ground_truth_map(
         for part in sm.collision:
             zmin, zmax = part.bounds[:, 2]
             if zmax >= low and zmin <= high:
-                obstacle |= _fill_convex(spec, _slab_footprint(part, low, high))
+                hull = _footprint_hull(_slab_footprint(part, low, high))
+                if hull is not None:
+                    hulls.append(hull)
+                    obstacle |= _fill_convex(spec, hull)
         flat_up = mesh.face_normals[:, 2] > 0.9
         near_zero = (np.abs(z) <= floor_tolerance).all(axis=1)
         points, _ = _sample(mesh, floor_spacing, rng, np.flatnonzero(flat_up & near_zero))
         floor |= _bin(spec, points[:, :2])
     floor = _close_pinholes(floor)
     free = floor & ~obstacle
-    navigable = erode(free, robot_radius, spec)
+    navigable = erode(free, robot_radius, spec) & _clear_of(spec, hulls, robot_radius)
     gt = GroundTruthMap(spec, floor, obstacle, free, navigable, robot_radius, robot_height, (low, high))
     logger.info(
         "ground truth %s: %d x %d cells, navigable %.1f m^2 (%.2f s)",
