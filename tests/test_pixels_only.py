@@ -25,6 +25,16 @@ from vgpnav_env.wrappers import VGPNavObservation
 pytestmark = pytest.mark.slow  # every test perceives home frames with the classical backbone
 
 ENV_ID = "VGPNav/PointGoal-v0"
+#: The episode the A* test was measured on: seed 16's before the navigable grid kept the robot radius
+#: from the collision parts (sampled episodes follow that grid).
+MEASURED_EPISODE = {"start": (9.825, 4.575, -0.43514737), "goal": (9.125, 3.025)}
+
+
+class _MeasuredEpisode(gym.Wrapper):
+    """Resets to :data:`MEASURED_EPISODE` whatever the seed."""
+
+    def reset(self, *, seed=None, options=None):
+        return self.env.reset(seed=seed, options=MEASURED_EPISODE)
 
 
 @pytest.fixture(scope="module")
@@ -53,13 +63,15 @@ def test_classical_localization_and_perception_on_20_home_queries(home_build, cl
 
 def test_astar_drives_the_wrapped_env_on_pixels_only(classical_database) -> None:
     """The README's example: ``VGPNavObservation(..., backbone="classical")`` driven by A*.
-    Measured (seed 16, 20 steps, no prior map): localized on 7 of 20 frames, every fix within
-    0.01 m of the true pose; the robot turns in place (A* heading flips as the fused map grows:
-    0 m travelled, a known weakness at this size, not asserted either way)."""
-    env = VGPNavObservation(
-        gym.make(ENV_ID, scene="home", image_size=HOME_SIZE, max_steps=20),
-        "classical",
-        database=classical_database,
+    Measured (MEASURED_EPISODE, seed 16, 20 steps, no prior map): localized on 7 of 20 frames,
+    every fix within 0.01 m of the true pose; the robot turns in place (A* heading flips as the
+    fused map grows: 0 m travelled, a known weakness at this size, not asserted either way)."""
+    env = _MeasuredEpisode(
+        VGPNavObservation(
+            gym.make(ENV_ID, scene="home", image_size=HOME_SIZE, max_steps=20),
+            "classical",
+            database=classical_database,
+        )
     )
     record = run_episode(env, PerceptionAStar(env), seed=16)
     env.close()
