@@ -29,6 +29,9 @@ ENV_ID = "VGPNav/PointGoal-v0"
 #: from the collision parts (sampled episodes follow that grid).
 MEASURED_EPISODE = {"start": (9.825, 4.575, -0.43514737), "goal": (9.125, 3.025)}
 
+#: Seed 3's episode then, on which the classical backbone localizes within the determinism test's steps.
+SEED3_EPISODE = {"start": (2.975, 6.475, -1.653668357959425), "goal": (6.825, 1.075)}
+
 
 class _MeasuredEpisode(gym.Wrapper):
     """Resets to :data:`MEASURED_EPISODE` whatever the seed."""
@@ -106,13 +109,13 @@ NOISY = {"rotation_noise_deg": 1.0, "direction_noise_deg": 2.0, "depth_noise": 0
 
 @pytest.mark.parametrize("backbone", ["classical", "simulated"])
 def test_wrapped_env_is_deterministic_per_seed(backbone: str, request: pytest.FixtureRequest) -> None:
-    """Two fresh envs with the same seed give identical observations and ``info`` (every array,
+    """Two fresh envs with the same seed (and episode) give identical observations and ``info`` (every array,
     the perceived poses, the fused map); another seed gives other observations. The simulated
     backbone is noisy (rotation, direction, depth noise and outliers), so its seed matters."""
     database = request.getfixturevalue("classical_database" if backbone == "classical" else "home_database")
     options = NOISY if backbone == "simulated" else {}
-    a = _rollout(database, backbone, 3, **options)
-    b = _rollout(database, backbone, 3, **options)
+    a = _rollout(database, backbone, 3, reset_options=SEED3_EPISODE, **options)
+    b = _rollout(database, backbone, 3, reset_options=SEED3_EPISODE, **options)
     for (obs_a, info_a), (obs_b, info_b) in zip(a, b, strict=True):
         np.testing.assert_equal(obs_a, obs_b)
         np.testing.assert_equal(info_a, info_b)
