@@ -590,15 +590,17 @@ def evaluate_policy(
     progress: bool = False,
 ) -> dict[str, Any]:
     """The navigation protocol for a trained PPO policy (run directory or model file) in the env it
-    was trained on (scene, backbone, image size and database from its ``config.json``)."""
+    was trained on (scene, backbone, image size, step limit and database from its ``config.json``)."""
     config = ppo.load_config(path)["env"]
     scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
+    limit = {"max_steps": config["env"]["max_steps"]} if "max_steps" in config["env"] else None
     return evaluate_navigation(
         scene or scenes[0],
         agent=f"ppo:{ppo.model_path(path)}",
         episodes=episodes,
         seed=seed,
         size=tuple(config["env"]["image_size"]),
+        env_kwargs=limit,
         out_dir=out_dir,
         progress=progress,
         database_dir=config.get("database_dir"),
