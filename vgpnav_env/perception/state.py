@@ -118,6 +118,8 @@ class _StallDetector:
     the thumbnails below ``threshold`` levels): after a forward step, the step was blocked."""
 
     def __init__(self, threshold: float) -> None:
+        if threshold < 0:
+            raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {threshold}")
         self.threshold = float(threshold)
         self._thumbnail: NDArray[np.float32] | None = None
 
@@ -157,20 +159,17 @@ class OdometryState:
         gate: GateConfig | None = GateConfig(),
         stall_threshold: float = STALL_THRESHOLD,
     ) -> None:
-        if stall_threshold < 0:
-            raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {stall_threshold}")
         self.low, self.high = np.asarray(low), np.asarray(high)
         self.discrete = bool(discrete)
         self.forward_step, self.turn_step = float(forward_step), float(turn_step)
         self.gate_config = gate
-        self.stall_threshold = float(stall_threshold)
         self._estimate = np.zeros(3)
         self._fallback = np.zeros(3)
         self._predicted: NDArray[np.float64] | None = None
         self._have_fix = False
         self._localized = False
         self._moves_since_fix = np.zeros(2)  # forward steps, turns
-        self._stall = _StallDetector(self.stall_threshold)
+        self._stall = _StallDetector(stall_threshold)
 
     @property
     def estimate(self) -> NDArray[np.float64]:
@@ -299,8 +298,6 @@ class EKFState:
         config: EKFConfig | None = None,
         stall_threshold: float = STALL_THRESHOLD,
     ) -> None:
-        if stall_threshold < 0:
-            raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {stall_threshold}")
         self.low, self.high = np.asarray(low, float), np.asarray(high, float)
         self.discrete = bool(discrete)
         self.forward_step, self.turn_step = float(forward_step), float(turn_step)
