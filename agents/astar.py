@@ -51,7 +51,9 @@ class AStarAgent:
         self,
         robot_radius: float = ROBOT_RADIUS,
         inflation_margin: float = 0.03,
+        navigable: NDArray[np.bool_] | None = None,
         goal_radius: float = 0.35,
+        blocked_goal_radius: float = 0.45,
         lookahead: float = 0.5,
         forward_step: float = FORWARD_STEP,
         turn_step_deg: float = TURN_STEP_DEG,
@@ -64,7 +66,9 @@ class AStarAgent:
             raise ValueError("robot_radius, goal_radius, lookahead and forward_step must be positive metres")
         self.robot_radius = float(robot_radius)
         self.inflation = float(robot_radius + inflation_margin)
+        self.navigable = None if navigable is None else np.asarray(navigable, bool)
         self.goal_radius = float(goal_radius)
+        self.blocked_goal_radius = max(float(blocked_goal_radius), self.goal_radius)
         self.lookahead = float(lookahead)
         self.forward_step = float(forward_step)
         self.turn_step = float(np.radians(turn_step_deg))
@@ -97,7 +101,8 @@ class AStarAgent:
         self, obstacles: NDArray[np.bool_], spec: GridSpec, pose: ArrayLike, inflation: float | None = None
     ) -> NDArray[np.bool_]:
         """Cells the robot centre may visit: not within ``inflation`` (default: robot radius +
-        margin) of an obstacle or a blocked cell. The robot's own footprint is always
+        margin) of an obstacle or a blocked cell, and ``navigable`` if the agent was given that
+        (known contact-free cells, e.g. the ground truth's). The robot's own footprint is always
         traversable (obstacles or blocked cells under the robot are errors), so a plan can start."""
         occ = obstacles.copy()
         if self.blocked_points:
@@ -107,6 +112,8 @@ class AStarAgent:
         near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
         occ[near] = False
         free = ~inflate(occ, spec.resolution, self.inflation if inflation is None else inflation)
+        if self.navigable is not None:
+            free &= self.navigable
         free[near] = True
         return free
 
@@ -223,8 +230,9 @@ class AStarAgent:
     def _decide(
         self, pose: NDArray, obstacles: NDArray[np.bool_], spec: GridSpec, goal: NDArray, blocked: bool
     ) -> Action:
-        if np.linalg.norm(goal - pose[:2]) <= self.goal_radius:
-            return Action.STOP
+        distance = float(np.linalg.norm(goal - pose[:2]))
+        if distance <= self.goal_radius or (blocked and distance <= self.blocked_goal_radius):
+            return Action.STOP  # at the goal, or bumped into something just short of it
         key = (spec, tuple(goal))
         changed = (
             self._plan_map is None or key != self._plan_key or not np.array_equal(obstacles, self._plan_map)

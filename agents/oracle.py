@@ -2,7 +2,9 @@
 
 It reads the env's true pose (``env.unwrapped.pose``), the goal of the raw observation and the
 env's ground-truth map of the layout it drives in; every cell that is not free floor counts as an
-obstacle. Nothing here but the goal is available to a real agent.
+obstacle, and the plan keeps to the navigable cells too (where the robot disc touches no collision
+part: the inflated free floor alone passes where mesh hulls stick out past their floor cells).
+Nothing here but the goal is available to a real agent.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ class OracleAgent:
         agent_kwargs.setdefault("robot_radius", base.robot_radius)
         agent_kwargs.setdefault("forward_step", base.forward_step)
         agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
+        agent_kwargs.setdefault("navigable", gt.navigable)
         self.base = base
         self.spec = gt.spec
         self.obstacles = ~np.asarray(gt.free, bool)

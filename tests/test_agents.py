@@ -138,6 +138,32 @@ def test_agent_follows_a_straight_path_between_two_headings_without_zigzag(beari
     assert np.linalg.norm(robot.pose[:2] - goal) < 0.35 and robot.collisions == 0
 
 
+def test_agent_stops_when_bumping_into_something_just_short_of_the_goal():
+    """A goal 0.4 m behind an unmapped obstacle (inside the 0.5 m success distance): the agent used
+    to push into it until the step budget ran out (the oracle on the apartment, 480 collisions)."""
+    occ, spec = room(with_wall=False)
+    unmapped = occ.copy()
+    unmapped[30:32, 10:30] = True  # wall at y = 1.5 m the agent does not know
+    robot = KinematicRobot(unmapped, spec, (1.0, 1.0, np.pi / 2))
+    agent = AStarAgent(robot_radius=RADIUS)
+    steps = drive(agent, robot, occ, spec, (1.0, 1.68), max_steps=50)
+    assert steps is not None and robot.collisions == 1
+    assert agent.goal_radius < np.linalg.norm(robot.pose[:2] - (1.0, 1.68)) <= agent.blocked_goal_radius
+
+
+def test_agent_keeps_to_navigable_cells_when_given():
+    """The oracle's ground-truth navigable mask closes what the inflated obstacle map leaves open
+    (mesh hulls reaching past their floor cells)."""
+    occ, spec = room(with_wall=False)
+    navigable = np.ones(spec.shape, bool)
+    navigable[50:70, :80] = False  # a band at y in [2.5, 3.5] m, x < 4 m the map does not hold
+    assert AStarAgent(robot_radius=RADIUS).traversable(occ, spec, (1.0, 1.0, 0.0))[60, 20]
+    agent = AStarAgent(robot_radius=RADIUS, navigable=navigable)
+    assert not agent.traversable(occ, spec, (1.0, 1.0, 0.0))[60, 20]
+    agent.plan((1.0, 1.0, 0.0), occ, spec, (1.0, 5.0))
+    assert agent.path[:, 0].max() >= 4.0  # around the band's end, not through it
+
+
 def test_agent_bad_inputs():
     occ, spec = room()
     agent = AStarAgent()
