@@ -342,8 +342,9 @@ def summarize(records: list[EpisodeRecord]) -> dict[str, Any]:
             values = [r.metrics[m.record] for r in records if r.metrics.get(m.record) is not None]
             summary[m.summary] = float(np.mean(values)) if values else None
         if m.frame_p95:
-            values = [v for r in records for v in r.frames.get(m.uuid, [])]
-            summary[m.frame_p95] = float(np.percentile(values, 95)) if values else None
+            values = np.asarray([v for r in records for v in r.frames.get(m.uuid, [])], float)
+            values = values[np.isfinite(values)]  # nan: a frame without an estimate
+            summary[m.frame_p95] = float(np.percentile(values, 95)) if len(values) else None
     summary["failures"] = {f: sum(r.failure == f for r in records) for f in FAILURES}
     return summary
 
@@ -547,10 +548,12 @@ def write_navigation_report(
         title,
         report,
         sections=[
-            "Means are over episodes; `p95_localization_error_m` is over all frames the agent acted on. "
-            "`lost frames` is the fraction of those frames on which perception did not localize (the "
-            "pose was carried by odometry); `mean pose err` is the horizontal error of the pose the "
-            "agent acted on, localized or not.",
+            "Means are over episodes; `p95_localization_error_m` is over all frames the agent acted on "
+            "that had a pose estimate. `lost frames` is the fraction of those frames on which "
+            "perception did not localize (the pose was carried by odometry); `no estimate` the "
+            "fraction before the first (confirmed) fix of the episode, when there is no pose at all; "
+            "`mean pose err` and `err > 0.5 m` are over the frames with an estimate (the horizontal "
+            "error of the pose the agent acted on, localized or not).",
             "## Failures\n\n" + failures,
             "## Episodes\n\n" + episode_table(records),
             "## Episodes, one picture each\n\nTop left: the true (green) and estimated (orange) "

@@ -123,7 +123,10 @@ def episode_figure(env: gym.Env, record: EpisodeRecord) -> Figure:
         fig.suptitle(title, fontsize=9)
         return fig
     lost = m.get("lost_fraction")
-    title += f"; lost {lost:.0%} of frames, mean pose error {m['localization_error_m']:.2f} m"
+    error = m["localization_error_m"]
+    title += f"; lost {lost:.0%} of frames, mean pose error " + (
+        "none" if error is None else f"{error:.2f} m"
+    )
     fig = Figure(figsize=(13, 8.5))
     grid = fig.add_gridspec(2, 2, height_ratios=(2.2, 1))
     _ground_truth_panel(fig.add_subplot(grid[0, 0]), env, record)

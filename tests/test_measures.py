@@ -87,6 +87,23 @@ def test_estimate_measures_and_episode_values():
     assert MEASURES["steps"].episode_value([3, 4]) == 4  # a final-value measure: the last one
 
 
+def test_frames_without_an_estimate_are_counted_apart_not_as_errors():
+    """Before the first fix the pose state has no estimate: its placeholder's error is nan (no
+    estimate), not an error; episodes average the errors over the frames with an estimate."""
+    m = Measurements("estimate")
+    true = np.array([3.0, 0.0, 0.0])
+    m.reset(EstimateState(np.zeros(3), False, true, "none", "global", has_estimate=False))
+    assert np.isnan(m["localization_error_m"].metric) and np.isnan(m["gross_pose_error"].metric)
+    assert m["no_estimate"].metric is True
+    m.update(EstimateState(np.array([2.0, 0.0, 0.0]), True, np.array([3.0, 0.0, 0.0]), "reset"))
+    assert m["localization_error_m"].metric == 1.0 and m["gross_pose_error"].metric == 1.0
+    assert m["no_estimate"].metric is False
+    assert MEASURES["localization_error_m"].episode_value([float("nan"), 0.1, 0.3]) == pytest.approx(0.2)
+    assert MEASURES["gross_pose_error"].episode_value([float("nan"), 1.0, 0.0]) == pytest.approx(0.5)
+    assert MEASURES["localization_error_m"].episode_value([float("nan")]) is None
+    assert MEASURES["no_estimate"].episode_value([True, False, False, False]) == pytest.approx(0.25)
+
+
 def test_dependencies_are_checked():
     class Orphan(Measure):
         uuid = "test_orphan"

@@ -160,6 +160,10 @@ def test_summary_aggregates_and_counts_failures():
     assert s["p95_localization_error_m"] == pytest.approx(np.percentile([0.0] * 38 + [1.0] * 2, 95))
     assert s["failures"] == {"lost": 1, "mislocalized": 0, "stopped-too-far": 0, "timeout": 1}
     assert s["collisions_per_episode"] == 1.0 and np.isfinite(s["soft_spl"])
+    # Frames without a pose estimate (nan: before the first fix) are left out of the percentile.
+    before = {"localization_error_m": [float("nan")] * 20 + [0.0] * 19 + [1.0]}
+    p95 = summarize([_record(True, None, 0.1, before)])["p95_localization_error_m"]
+    assert p95 == pytest.approx(np.percentile([0.0] * 19 + [1.0], 95))
     assert list(s) == [
         "episodes",
         "success_rate",
@@ -169,6 +173,7 @@ def test_summary_aggregates_and_counts_failures():
         "mean_steps",
         "mean_localization_error_m",
         "p95_localization_error_m",
+        "mean_no_estimate_fraction",
         "mean_lost_fraction",
         "mean_tracked_fraction",
         "mean_relocalized_fraction",

@@ -124,6 +124,7 @@ def test_wrapped_env_is_deterministic_per_seed(backbone: str, request: pytest.Fi
     assert not np.array_equal(a[0][0]["goal_rel"], other["goal_rel"])  # another start and goal
     if backbone == "simulated":  # the same start and images, other noise: another estimate
         start = {"start": tuple(a[0][1]["pose"]), "goal": tuple(a[0][1]["goal"])}
-        (same, _), *_ = _rollout(database, backbone, 4, steps=0, reset_options=start, **options)
-        np.testing.assert_array_equal(same["localized"], a[0][0]["localized"])
-        assert not np.array_equal(same["pose"], a[0][0]["pose"])
+        # One view at reset (no jitter views): the estimate starts at the first step's fix.
+        same = _rollout(database, backbone, 4, reset_options=start, **options)
+        assert [o["localized"] for o, _ in same] == [o["localized"] for o, _ in a]
+        assert a[-1][0]["localized"] and not np.array_equal(same[-1][0]["pose"], a[-1][0]["pose"])

@@ -155,7 +155,10 @@ def test_perception_agent_looks_around_until_localized(database):
     assert actions == [2, 2, 2]  # never localized: turn in place
     backbone.fail = False
     obs, _, _, _, info = env.step(policy.act(obs))
-    assert obs["localized"] == 1
+    assert obs["localized"] == 0 and info["perception"]["fix"] == "unconfirmed"  # a lone first fix
+    assert info["no_estimate"] and np.isnan(info["localization_error_m"])
+    obs, _, _, _, info = env.step(policy.act(obs))
+    assert obs["localized"] == 1 and info["perception"]["fix"] == "reset"  # confirmed by the next one
     assert policy.act(obs) in (1, 2, 3) and policy.seen and policy.blind == 0
     env.close()
 
@@ -251,7 +254,8 @@ def test_temporal_mode_tracks_a_known_trajectory(database):
     env = temporal_env(database, backbone)
     assert env.perception_mode == "temporal"
     obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
-    assert info["perception"]["fix"] == "reset"  # the first fix starts the estimate
+    # The reset's views (standing still) confirm each other: the estimate starts at reset.
+    assert info["perception"]["fix"] == "accepted" and not info["no_estimate"]
     sources, errors = [], []
     for action in TRAJECTORY:
         obs, _, _, _, info = env.step(action)
@@ -286,7 +290,8 @@ def test_temporal_mode_bridges_a_textureless_stretch(database):
 
 def test_temporal_mode_detects_a_teleport_and_relocalizes(database):
     """The robot is carried 2 m away: the fixes there contradict the estimate and are neither taken
-    in nor mapped, until the third consistent one relocalizes (``EKFConfig.kidnap_fixes``)."""
+    in nor mapped, until they outnumber the estimate's support (``EKFConfig``: the 3 views of the
+    reset and the 2 fixes accepted since): the sixth relocalizes."""
     backbone = FlakyBackbone()
     env = temporal_env(database, backbone)
     obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
@@ -295,13 +300,13 @@ def test_temporal_mode_detects_a_teleport_and_relocalizes(database):
     env.unwrapped.robot.set_pose((5.5, 2.5, 0.0))
     before = env.perceiver.map.logodds.copy()
     fixes = []
-    for action in [2, 3, 2, 3]:
+    for action in [2, 3, 2, 3, 2, 3, 2]:
         obs, _, _, _, info = env.step(action)
         fixes.append(info["perception"]["fix"])
         if fixes[-1] == "rejected":
             assert obs["localized"] == 0 and info["localization_error_m"] > 1.5
             np.testing.assert_array_equal(env.perceiver.map.logodds, before)  # nothing fused
-    assert fixes == ["rejected", "rejected", "reset", "accepted"]
+    assert fixes == ["rejected"] * 5 + ["reset", "accepted"]
     assert info["localization_error_m"] < 0.05 and info["relocalized"] + info["tracked"] == 1
     env.close()
 

@@ -62,14 +62,17 @@ class EnvState:
 class EstimateState:
     """The observed pose estimate (x, y, yaw), whether the pose state took in a perceived pose this
     frame, and the true pose; ``fix``: what the pose state did with the perceived pose (a
-    :data:`~vgpnav_env.perception.state.FIX_OUTCOMES` name) and ``source``: where perception's
-    references came from (``tracking`` or ``global``)."""
+    :data:`~vgpnav_env.perception.state.FIX_OUTCOMES` name), ``source``: where perception's
+    references came from (``tracking`` or ``global``) and ``has_estimate``: whether the pose state
+    has an estimate at all (False before the first fix of an episode: ``estimate`` is then a
+    placeholder, and the pose-error measures are nan, "no estimate", not an error)."""
 
     estimate: NDArray[np.float64]
     localized: bool
     true_pose: NDArray[np.float64]
     fix: str = "accepted"
     source: str = "global"
+    has_estimate: bool = True
 
 
 class Measure:
@@ -295,10 +298,19 @@ class Travelled(Accumulated):
 # -- estimate measures ----------------------------------------------------------------------
 
 
+def _mean_over_estimates(values: Sequence[Any]) -> float | None:
+    """The mean of the finite ``values`` (the frames with a pose estimate); None when none is."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if len(v) else None
+
+
 @register_measure
 class LocalizationError(Measure):
-    """Horizontal distance (m) between the observed pose estimate and the true pose; episodes
-    report its mean over the frames the agent acted on."""
+    """Horizontal distance (m) between the observed pose estimate and the true pose, nan while the
+    pose state has no estimate (before the first fix: "no estimate", counted by
+    :class:`NoEstimate`, not as an error); episodes report its mean over the frames the agent acted
+    on that had an estimate."""
 
     uuid = "localization_error_m"
     scope = "estimate"
@@ -309,7 +321,28 @@ class LocalizationError(Measure):
     column = "mean pose err (m)"
 
     def update_metric(self, state: EstimateState, measures: Measurements) -> None:
-        self.metric = float(np.linalg.norm(state.estimate[:2] - state.true_pose[:2]))
+        error = float(np.linalg.norm(state.estimate[:2] - state.true_pose[:2]))
+        self.metric = error if state.has_estimate else float("nan")
+
+    @classmethod
+    def episode_value(cls, values: Sequence[Any]) -> Any:
+        return _mean_over_estimates(values)
+
+
+@register_measure
+class NoEstimate(Measure):
+    """Whether the pose state had no estimate at this frame (before the first fix of an episode);
+    episodes report the fraction of the frames the agent acted on."""
+
+    uuid = "no_estimate"
+    scope = "estimate"
+    record = "no_estimate_fraction"
+    per_frame = True
+    summary = "mean_no_estimate_fraction"
+    column = "no estimate"
+
+    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
+        self.metric = not state.has_estimate
 
 
 @register_measure
@@ -371,8 +404,9 @@ GROSS_POSE_ERROR_M = 0.5
 
 @register_measure
 class GrossPoseError(Measure):
-    """Whether the observed pose estimate is more than :data:`GROSS_POSE_ERROR_M` off the true pose;
-    episodes report the fraction of frames."""
+    """Whether the observed pose estimate is more than :data:`GROSS_POSE_ERROR_M` off the true pose
+    (1.0 / 0.0; nan without an estimate); episodes report the fraction of the frames with an
+    estimate."""
 
     uuid = "gross_pose_error"
     scope = "estimate"
@@ -383,4 +417,9 @@ class GrossPoseError(Measure):
     column = "err > 0.5 m"
 
     def update_metric(self, state: EstimateState, measures: Measurements) -> None:
-        self.metric = bool(measures["localization_error_m"].metric > GROSS_POSE_ERROR_M)
+        error = measures["localization_error_m"].metric
+        self.metric = float(error > GROSS_POSE_ERROR_M) if np.isfinite(error) else float("nan")
+
+    @classmethod
+    def episode_value(cls, values: Sequence[Any]) -> Any:
+        return _mean_over_estimates(values)

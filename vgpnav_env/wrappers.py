@@ -39,14 +39,18 @@ references and confident pairs, reference ``source`` -- tracking or global -- an
 state's ``fix``, :data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), ``estimated_pose``,
 ``obstacles`` (bool grid of occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``),
 and the metrics of the ``"estimate"`` measures of :mod:`vgpnav_env.measures`:
-``localization_error_m`` (horizontal error of the observed ``pose``), ``localized``, ``tracked``,
-``relocalized`` and ``gross_pose_error``. Timings stay out of it so that ``info`` is comparable
+``localization_error_m`` (horizontal error of the observed ``pose``; nan before the pose state's
+first estimate, whose frames ``no_estimate`` marks), ``localized``, ``tracked``, ``relocalized``
+and ``gross_pose_error``. Timings stay out of it so that ``info`` is comparable
 between runs.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
-height initialisation with the known camera height). The wrapper also sets the env's render
-overlay (estimated pose and fused obstacles).
+height initialisation with the known camera height); their perceived poses (yaw offsets taken
+out) are the pose state's first fixes, the first view's last (the EKF's first estimate needs
+``EKFConfig.init_fixes`` consistent fixes: at reset these nearly identical views can give them,
+later a wrong first fix needs a consistent second one from another frame). The wrapper also
+sets the env's render overlay (estimated pose and fused obstacles).
 """
 
 from __future__ import annotations
@@ -279,9 +283,17 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             frame = base.render_view(view)
             images.append(frame.rgb)
             privileged.append(self._privileged(base.camera_T_wc(view), frame.depth))
-        result = self.perceiver.initialize(images, privileged)[0]
+        results = self.perceiver.initialize(images, privileged)
         self.pose_state.reset(obs["rgb"], fallback=(*self.perceiver.map.spec.centre, 0.0))
-        return self._observe(obs, info, result, first=True)
+        for view, dyaw in zip(results[1:], self.init_yaw_jitter[1:], strict=True):
+            # The robot stands still: each view's pose, its known yaw offset taken out, is a fix of
+            # the start pose (the first view's follows in _observe).
+            fix = None
+            if view.localized and view.T_wc is not None:
+                fix = base_pose(view.T_wc)
+                fix[2] = wrap_angle(fix[2] - dyaw)
+            self.pose_state.correct(fix)
+        return self._observe(obs, info, results[0], first=True)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
@@ -315,7 +327,12 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )
         obstacles = occupancy.occupied()
         state = EstimateState(
-            new_obs["pose"], localized, np.asarray(info["pose"]), self.pose_state.fix, result.source
+            new_obs["pose"],
+            localized,
+            np.asarray(info["pose"]),
+            self.pose_state.fix,
+            result.source,
+            self.pose_state.has_estimate,
         )
         (self.measurements.reset if first else self.measurements.update)(state)
         info = dict(info)

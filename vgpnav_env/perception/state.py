@@ -48,7 +48,8 @@ FIX_OUTCOMES: dict[str, str] = {
     "none": "no perceived pose: the estimate was carried by odometry",
     "accepted": "the perceived pose agreed with the estimate and corrected it",
     "rejected": "the perceived pose contradicted the estimate (outside its gate) and was ignored",
-    "reset": "the estimate was set to the perceived pose (first fix, or a detected kidnapping)",
+    "reset": "the estimate was set to the perceived pose (first confirmed fix, or a detected kidnapping)",
+    "unconfirmed": "a perceived pose before the first estimate, not yet confirmed by consistent ones",
 }
 
 
@@ -101,6 +102,11 @@ class PoseState(Protocol):
     @property
     def covariance(self) -> NDArray[np.float64] | None:
         """The estimate's 3x3 covariance over (x, y, yaw) (m^2, m rad, rad^2); None: not kept."""
+
+    @property
+    def has_estimate(self) -> bool:
+        """Whether there is an estimate at all (False before the first fix of an episode:
+        :attr:`estimate` is then the fallback placeholder)."""
 
     def tracking_pose(self) -> NDArray[np.float64] | None:
         """The predicted (x, y, yaw) to choose this frame's references around (tracking), or None:
@@ -187,6 +193,10 @@ class OdometryState:
     def covariance(self) -> None:
         return None
 
+    @property
+    def has_estimate(self) -> bool:
+        return self._have_fix
+
     def tracking_pose(self) -> None:
         return None
 
@@ -243,11 +253,17 @@ class EKFConfig:
     ``continuous_sigma`` / ``continuous_sigma_deg`` per step. Measurement (a global VGP-Nav fix):
     ``fix_sigma`` per horizontal axis, ``fix_sigma_deg`` in yaw. A fix whose squared Mahalanobis
     distance to the prediction exceeds ``gate_chi2`` (3 degrees of freedom; 14.2 = 99.7 %) is
-    rejected. ``kidnap_fixes`` consecutive rejected fixes that agree with each other (moved by the
-    same odometry) reset the estimate to the last of them: the robot was moved (or the estimate
-    had drifted away). Tracking (references around the prediction) while the position standard
-    deviation (largest axis) is at most ``track_max_sigma`` and the yaw's at most
-    ``track_max_sigma_deg``; beyond, global retrieval relocalizes.
+    rejected. Consecutive rejected fixes that agree with each other (moved by the same odometry)
+    reset the estimate to the last of them -- the robot was moved, or the estimate had drifted
+    away -- once they are at least ``kidnap_fixes`` and outnumber the estimate's support: the fixes
+    that set it and those it accepted since, counted up to ``max_support`` (a place that looks like
+    another one gives runs of consistent wrong fixes; they must outweigh the estimate's own
+    support, and an accepted fix ends the run). The first
+    estimate of an episode likewise needs ``init_fixes`` consistent fixes (a single wrong first fix
+    would otherwise start the episode at the wrong place). Tracking (references around the
+    prediction) while the position standard deviation (largest axis) is at most
+    ``track_max_sigma`` and the yaw's at most ``track_max_sigma_deg``; beyond, global retrieval
+    relocalizes.
     """
 
     forward_sigma: float = 0.03
@@ -259,6 +275,8 @@ class EKFConfig:
     fix_sigma_deg: float = 2.0
     gate_chi2: float = 14.2
     kidnap_fixes: int = 3
+    init_fixes: int = 2
+    max_support: int = 8
     track_max_sigma: float = 0.5
     track_max_sigma_deg: float = 20.0
 
@@ -266,8 +284,11 @@ class EKFConfig:
         values = (self.forward_sigma, self.lateral_sigma, self.turn_sigma_deg, self.continuous_sigma,
                   self.continuous_sigma_deg, self.fix_sigma, self.fix_sigma_deg, self.gate_chi2,
                   self.track_max_sigma, self.track_max_sigma_deg)  # fmt: skip
-        if min(values) <= 0 or self.kidnap_fixes < 1:
-            raise ValueError(f"EKF noise and thresholds must be positive and kidnap_fixes >= 1, got {self}")
+        if min(values) <= 0 or min(self.kidnap_fixes, self.init_fixes, self.max_support) < 1:
+            raise ValueError(
+                f"EKF noise and thresholds must be positive, kidnap_fixes, init_fixes and "
+                f"max_support >= 1, got {self}"
+            )
 
     @property
     def fix_covariance(self) -> NDArray[np.float64]:
@@ -283,8 +304,9 @@ class EKFState:
     change was blocked and moves nothing (as :class:`OdometryState`). Measurements: perceived poses
     with covariance ``config.fix_covariance``, Mahalanobis-gated (no :class:`PoseGate`: the perceiver
     is not constrained, so that fixes contradicting the estimate still reach :meth:`correct` for
-    kidnapping detection). Before the first fix the estimate is the fallback with an unbounded
-    covariance and the first fix is taken as it is. Estimates are clipped to [``low``, ``high``].
+    kidnapping detection). Before the first estimate (``config.init_fixes`` consistent fixes) the
+    estimate is the fallback placeholder with an unbounded covariance. Estimates are clipped to
+    [``low``, ``high``].
     """
 
     def __init__(
@@ -310,10 +332,15 @@ class EKFState:
         self._candidate: NDArray[np.float64] | None = None  # the last rejected fix, moved by odometry
         self._candidate_P = np.zeros((3, 3))
         self._candidate_count = 0
+        self._support = 0  # the fixes that set the estimate and those accepted since (capped)
 
     @property
     def estimate(self) -> NDArray[np.float64]:
         return np.clip(self._x, self.low, self.high)
+
+    @property
+    def has_estimate(self) -> bool:
+        return self._have_fix
 
     @property
     def covariance(self) -> NDArray[np.float64]:
@@ -334,6 +361,7 @@ class EKFState:
         self._have_fix = False
         self._fix = "none"
         self._candidate, self._candidate_count = None, 0
+        self._support = 0
 
     def _process(self, x: NDArray[np.float64], P: NDArray[np.float64], action: Action | None):
         """(x, P) moved by ``action`` (None: a continuous command of unknown extent)."""
@@ -359,6 +387,32 @@ class EKFState:
             self._x, self._P = self._process(self._x, self._P, act)
         if self._candidate is not None:
             self._candidate, self._candidate_P = self._process(self._candidate, self._candidate_P, act)
+
+    def predict_odometry(self, motion: ArrayLike) -> None:
+        """Motion update by measured odometry instead of an action: ``motion`` (forward m, left m,
+        yaw rad) in the robot frame of the previous pose (e.g. wheel odometry over a query run's
+        continuous motion). The process noise is that of the equivalent number of nominal steps:
+        variance ``forward_sigma^2`` / ``lateral_sigma^2`` per ``forward_step`` of distance and
+        ``turn_sigma_deg^2`` per ``turn_step`` of rotation."""
+        d = np.asarray(motion, float)
+        if self._have_fix:
+            self._x, self._P = self._odometry(self._x, self._P, d)
+        if self._candidate is not None:
+            self._candidate, self._candidate_P = self._odometry(self._candidate, self._candidate_P, d)
+
+    def _odometry(self, x: NDArray[np.float64], P: NDArray[np.float64], d: NDArray[np.float64]):
+        cfg = self.config
+        c, s = np.cos(x[2]), np.sin(x[2])
+        R = np.array([[c, -s], [s, c]])
+        x_new = np.r_[x[:2] + R @ d[:2], wrap_angle(x[2] + d[2])]
+        F = np.eye(3)
+        F[:2, 2] = [-s * d[0] - c * d[1], c * d[0] - s * d[1]]
+        steps = np.hypot(d[0], d[1]) / self.forward_step
+        turns = abs(d[2]) / self.turn_step
+        Q = np.zeros((3, 3))
+        Q[:2, :2] = R @ np.diag([cfg.forward_sigma**2 * steps, cfg.lateral_sigma**2 * steps]) @ R.T
+        Q[2, 2] = np.radians(cfg.turn_sigma_deg) ** 2 * turns
+        return x_new, F @ P @ F.T + Q
 
     def gate(self) -> None:
         return None
@@ -386,10 +440,7 @@ class EKFState:
             return
         z = np.asarray(measured, float)
         R = cfg.fix_covariance
-        if not self._have_fix:
-            self._take(z)
-            return
-        if self.mahalanobis2(z) <= cfg.gate_chi2:
+        if self._have_fix and self.mahalanobis2(z) <= cfg.gate_chi2:
             S = self._P + R
             K = self._P @ np.linalg.inv(S)
             self._x = self._x + K @ _innovation(z, self._x)
@@ -398,23 +449,31 @@ class EKFState:
             self._P = I_K @ self._P @ I_K.T + K @ R @ K.T  # Joseph form: stays symmetric positive
             self._fix = "accepted"
             self._candidate, self._candidate_count = None, 0
+            self._support = min(self._support + 1, self.config.max_support)
             return
-        self._fix = "rejected"
         agrees = (
             self._candidate is not None
             and _mahalanobis2(z, self._candidate, self._candidate_P + R) <= cfg.gate_chi2
         )
         self._candidate_count = self._candidate_count + 1 if agrees else 1
         self._candidate, self._candidate_P = z, R.copy()
-        if self._candidate_count >= cfg.kidnap_fixes:
+        if not self._have_fix:
+            self._fix = "unconfirmed"
+            if self._candidate_count >= cfg.init_fixes:
+                self._take(z)
+            return
+        self._fix = "rejected"
+        if self._candidate_count >= max(cfg.kidnap_fixes, self._support + 1):
             logger.debug("kidnapping: %d consistent fixes off the estimate", self._candidate_count)
             self._take(z)
 
     def _take(self, z: NDArray[np.float64]) -> None:
-        """Set the estimate to the fix ``z`` (first fix or relocalization)."""
+        """Set the estimate to the fix ``z`` (first estimate or relocalization); the consistent
+        fixes that led to it are its support."""
         self._x, self._P = z.copy(), self.config.fix_covariance.copy()
         self._have_fix = True
         self._fix = "reset"
+        self._support = min(self._candidate_count, self.config.max_support)
         self._candidate, self._candidate_count = None, 0
 
 
