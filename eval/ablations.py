@@ -1,12 +1,15 @@
 """Ablation protocol: paper Tables IV (localization) and V (metric perception) on our scenes.
 
-``vgpnav eval ablations SCENE [--backbone B] [--queries N] [--k 10] --out DIR [--build DIR]``
+``vgpnav eval ablations SCENE [--backbone B] [--queries N] [--k 10] [--perception-mode paper|temporal]
+--out DIR [--build DIR]``
 
 Table IV switches the geometry-aware retrieval (else top-k) and the weighted motion averaging
 (else the single best reference, placed with the ground-anchored scale); Table V adds and removes
 the ground-anchored scale recovery (off = the backbone's unknown scale). The six distinct
-configurations run once each over the same query frames; ``report.json`` holds ``table_iv`` and
-``table_v`` (our numbers beside the paper's) and every configuration's metrics.
+configurations run once each over the same query frames, in ``--perception-mode`` (default
+paper: every frame on its own, as published); the full pipeline also runs in the other mode, and
+``modes`` holds both (``report.md``'s "Perception modes" table). ``report.json`` holds
+``table_iv`` and ``table_v`` (our numbers beside the paper's) and every configuration's metrics.
 """
 
 from __future__ import annotations
@@ -22,13 +25,16 @@ from vgpnav_env.arguments import positive_int_arg
 from vgpnav_env.eval.perception_runs import (
     QueryRun,
     add_backbone_arguments,
+    add_perception_mode_argument,
     add_scene_arguments,
     backbone_options,
     localization_metrics,
     perception_metrics,
     query_records,
     resolve_build,
+    temporal_metrics,
 )
+from vgpnav_env.eval.query_reports import time_metrics
 from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
 from vgpnav_env.eval.workers import Workers, add_worker_arguments, workers_from_args
 from vgpnav_env.perception.pipeline import PerceptionConfig
@@ -42,6 +48,20 @@ CONFIGS: dict[str, tuple[str, str, bool]] = {
     "topk-single-noscale": ("topk", "single", False),
     "topk-weighted-noscale": ("topk", "weighted", False),
 }
+#: The "Perception modes" table: the full pipeline per frame (paper) and in order (temporal).
+MODE_COLUMNS = (
+    "lost_rate",
+    "n_gross",
+    "recall_5cm_5deg",
+    "median_translation_m",
+    "acc_m",
+    "comp_m",
+    "cpu_s_per_frame",
+    "tracked_rate",
+    "estimate_mean_m",
+    "estimate_p95_m",
+    "estimate_gross_rate",
+)
 #: Paper Table IV (7-Scenes): (geometry retrieval, weighted averaging, config, cm, deg).
 TABLE_IV = [
     (False, False, "topk-single-scale", 11.3, 0.90),
@@ -61,7 +81,8 @@ TABLE_V = [
 def evaluate_ablations(
     run: QueryRun, *, workers: Workers | None = None, progress: bool = True
 ) -> dict[str, Any]:
-    """Metrics of every configuration (``run`` with its config's switches set) and the two tables;
+    """Metrics of every configuration (``run`` with its config's switches set, in ``run.mode``), the
+    two tables and ``modes``: the full pipeline in both perception modes (:data:`MODE_COLUMNS`);
     ``workers`` (default: this process) perceive the frames, keeping the database and the backbone
     between configurations."""
     k, n_queries = run.config.retrieval.k, run.n_queries
@@ -72,10 +93,13 @@ def evaluate_ablations(
         for name, (retrieval, averaging, scale) in CONFIGS.items():
             config = PerceptionConfig.ablation(retrieval=retrieval, averaging=averaging, scale=scale, k=k)
             records = query_records(replace(run, config=config), workers=workers)
-            results[name] = {
-                "localization": localization_metrics(records),
-                "perception": perception_metrics(records),
-            }
+            results[name] = _config_metrics(records)
+        full = replace(run, config=PerceptionConfig.ablation(k=k))
+        other = "temporal" if run.mode == "paper" else "paper"
+        modes = {
+            run.mode: results["geometry-weighted-scale"],
+            other: _config_metrics(query_records(replace(full, mode=other), workers=workers)),
+        }
     finally:
         if own:
             workers.close()
@@ -107,7 +131,29 @@ def evaluate_ablations(
         }
         for wma, scale, geo, name, acc, comp in TABLE_V
     ]
-    return {"table_iv": table_iv, "table_v": table_v, "configs": results, "n_queries": n_queries, "k": k}
+    modes_table = {
+        mode: {k: {**m["localization"], **m["perception"], **m["temporal"]}.get(k, float("nan"))
+               for k in MODE_COLUMNS}
+        for mode, m in sorted(modes.items(), key=lambda kv: kv[0] != "paper")
+    }  # fmt: skip
+    return {
+        "table_iv": table_iv,
+        "table_v": table_v,
+        "configs": results,
+        "modes": modes_table,
+        "n_queries": n_queries,
+        "k": k,
+        "mode": run.mode,
+    }
+
+
+def _config_metrics(records: list) -> dict[str, Any]:
+    """One configuration's localization, perception and (temporal mode) state-estimate metrics."""
+    return {
+        "localization": {**localization_metrics(records), **time_metrics(records)},
+        "perception": perception_metrics(records),
+        "temporal": temporal_metrics(records),
+    }
 
 
 def retrieval_comparison(configs: dict[str, dict[str, Any]]) -> str:
@@ -168,6 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, queries=20)
     add_backbone_arguments(parser)
     parser.add_argument("--k", type=positive_int_arg, default=10, help="number of references (default 10)")
+    add_perception_mode_argument(parser, default="paper")
     add_worker_arguments(parser)
 
 
@@ -176,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     options = backbone_options(args)
     build = resolve_build(args)
     config = PerceptionConfig.ablation(k=args.k)
-    query_run = QueryRun(build, args.backbone, options, config, args.queries, args.seed)
+    query_run = QueryRun(build, args.backbone, options, config, args.queries, args.seed, args.perception_mode)
     with workers_from_args(args) as workers:
         metrics = evaluate_ablations(query_run, workers=workers)
     settings = {"scene": args.scene, **query_run.settings()}
@@ -243,6 +290,13 @@ def run(args: argparse.Namespace) -> int:
             ".3f",
         ),
     ]
+    modes = [(mode, *m.values()) for mode, m in metrics["modes"].items()]
+    sections.append(
+        "## Perception modes (full pipeline)\n\nThe same frames per frame (paper) and in order with "
+        "the state estimate (temporal: tracking, EKF on simulated wheel odometry; `estimate_*` is "
+        "the EKF's horizontal error over the frames with an estimate). The tables above are in "
+        f"{metrics['mode']} mode.\n\n" + markdown_table(["mode", *MODE_COLUMNS], modes)
+    )
     figures = {"ablations.png": ablation_figure(metrics)}
     write_report(args.out, "Ablations (paper Tables IV and V)", metrics, sections, figures, settings=settings)
     full, none = metrics["configs"]["geometry-weighted-scale"], metrics["configs"]["topk-single-noscale"]

@@ -1,8 +1,8 @@
 """Metric perception protocol: Acc / Comp / Overall of VGP-Nav's metric points (paper Table III).
 
 ``vgpnav eval perception SCENE [SCENE ...] --backbone B [--no-scale-recovery]
-[--retrieval geometry|topk] [--averaging weighted|single] [--k 10] [--queries N] --out DIR
-[--build DIR]``
+[--retrieval geometry|topk] [--averaging weighted|single] [--k 10] [--queries N]
+[--perception-mode paper|temporal] --out DIR [--build DIR]``
 
 Per query frame the predicted metric world points (confident pixels) are compared with the true
 visible surface of that frame (see :mod:`vgpnav_env.eval.perception_runs`): Acc = mean
@@ -13,7 +13,9 @@ metrics (gross errors, recalls) stand beside them, since a gross pose error is w
 Comp large. The ground anchor is initialised on the first query frame with that frame's camera
 height as the calibrated height and kept for the run. ``report.md`` adds a top-down figure of
 predicted vs true points of one frame (``points.png``), the error CDF and the worst frames.
-Several scenes: one report per scene plus a table across them.
+Several scenes: one report per scene plus a table across them. ``--perception-mode temporal``:
+the frames in order with the state estimate (tracking; its metrics are added,
+:func:`~vgpnav_env.eval.perception_runs.temporal_metrics`).
 """
 
 from __future__ import annotations
@@ -29,10 +31,12 @@ from vgpnav_env.eval.perception_runs import (
     FrameRecord,
     QueryFrame,
     QueryRun,
+    add_perception_mode_argument,
     add_pipeline_arguments,
     add_scene_arguments,
     perceive_queries,
     perception_metrics,
+    temporal_metrics,
 )
 from vgpnav_env.eval.query_reports import localization_summary, run_scenes
 from vgpnav_env.eval.report import markdown_table
@@ -99,7 +103,7 @@ def evaluate_perception(
         records.append(frame.record)
         if frame.result.localized and (example is None or frame.record.n_points > example.record.n_points):
             example = frame
-    metrics = {**localization_summary(records), **perception_metrics(records)}
+    metrics = {**localization_summary(records), **perception_metrics(records), **temporal_metrics(records)}
     return {**metrics, "records": [asdict(r) for r in records]}, example
 
 
@@ -124,6 +128,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="ablation: keep the backbone's unknown scale (no ground-anchored scale recovery)",
     )
+    add_perception_mode_argument(parser, default="paper")
     add_worker_arguments(parser)
 
 

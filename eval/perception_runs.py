@@ -39,13 +39,15 @@ from scipy.spatial import cKDTree
 
 from vgpnav_env.arguments import count_arg, positive_int_arg
 from vgpnav_env.eval.workers import Workers, note
-from vgpnav_env.geometry import rotation_angle
+from vgpnav_env.geometry import camera_yaw_pitch, rotation_angle, wrap_angle
 from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.motion_averaging import AVERAGING_METHODS
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
 from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, RetrievalConfig, nearby_cameras
 from vgpnav_env.perception.scale_recovery import GroundAnchor
+from vgpnav_env.perception.state import EKFConfig, EKFState
+from vgpnav_env.robot import FORWARD_STEP, TURN_STEP_DEG, base_pose, camera_T_wc
 from vgpnav_env.runs import Build, load_build, load_run_depth, read_build_summary, read_run_meta
 
 logger = logging.getLogger(__name__)
@@ -222,6 +224,10 @@ class FrameRecord:
     :data:`RETRIEVAL_HIT` of the true pose; ``references``: the indices the pose came from.
     ``confidence``: the verification's confidence in the pose (0 when lost);
     ``candidate_confidence``: its confidence before any rejection (nan without a verdict).
+    ``source``: where the references came from (``tracking`` around the predicted pose, or
+    ``global`` retrieval). Temporal mode only: ``fix``, what the EKF did with the frame's pose
+    (:data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), and ``estimate_error_m``, the horizontal
+    error of the EKF's estimate after the frame (nan before its first estimate).
     """
 
     frame: int
@@ -244,6 +250,9 @@ class FrameRecord:
     references: list[int] = field(default_factory=list)
     confidence: float = 0.0
     candidate_confidence: float = float("nan")
+    source: str = "global"
+    fix: str = ""
+    estimate_error_m: float = float("nan")
 
     @property
     def gross(self) -> bool:
@@ -265,8 +274,9 @@ class QueryRun:
     a prior map: no protocol reads the map); ``backbone`` + ``backbone_options``: the
     ``make_backbone`` name and options; ``config``: the pipeline settings (default: the
     pipeline's own; the camera height is calibrated on the first frame, see the module
-    docstring); ``n_queries`` evenly spaced frames (0 / None = all); ``seed``: the backbone's noise
-    and the Acc / Comp subsampling.
+    docstring); ``n_queries`` evenly spaced frames (0 / None = all); ``seed``: the backbone's noise,
+    the Acc / Comp subsampling and the odometry noise; ``mode``: a
+    :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name (:func:`perceive_queries`).
     """
 
     build_dir: Path
@@ -275,6 +285,13 @@ class QueryRun:
     config: PerceptionConfig = field(default_factory=PerceptionConfig)
     n_queries: int | None = 50
     seed: int = 0
+    mode: str = "paper"
+
+    def __post_init__(self) -> None:
+        from vgpnav_env.perception.pipeline import PERCEPTION_MODES
+
+        if self.mode not in PERCEPTION_MODES:
+            raise ValueError(f"unknown perception mode {self.mode!r}; allowed: {', '.join(PERCEPTION_MODES)}")
 
     @classmethod
     def from_args(
@@ -291,7 +308,8 @@ class QueryRun:
         options = backbone_options(args)
         config = config_from_args(args, scale=scale)
         build_dir = resolve_build(args, scene, build)
-        return cls(build_dir, args.backbone, options, config, args.queries, args.seed)
+        mode = getattr(args, "perception_mode", "paper")
+        return cls(build_dir, args.backbone, options, config, args.queries, args.seed, mode)
 
     def settings(self) -> dict[str, Any]:
         """The report's settings: build, query layout and image size, backbone, perception mode,
@@ -303,7 +321,7 @@ class QueryRun:
             "layout": meta["layout"],
             "image size": f"{meta['width']}x{meta['height']}",
             "backbone": self.backbone,
-            "perception mode": "paper",
+            "perception mode": self.mode,
             "retrieval": self.config.retrieval.method,
             "averaging": self.config.averaging.method,
             "scale_recovery": self.config.scale.enabled,
@@ -367,13 +385,21 @@ class QueryWorker:
             else None
         )
 
-    def perceive(self, perceiver: Perceiver, i: int, max_depth: float, max_points: int) -> QueryFrame:
+    def perceive(
+        self,
+        perceiver: Perceiver,
+        i: int,
+        max_depth: float,
+        max_points: int,
+        predicted: NDArray[np.float64] | None = None,
+    ) -> QueryFrame:
         """Query frame ``i`` perceived and scored; the backbone's noise and the Acc / Comp
         subsample are seeded by (seed, i), so the frame's result does not depend on the frames
-        perceived before it (only on the ground anchor)."""
+        perceived before it (only on the ground anchor and, tracking, the ``predicted`` camera
+        pose the references are chosen around)."""
         query, depth = self.build.query, self.depth[i]
         self.backbone.reseed(np.random.default_rng([self.seed, i]))
-        result = perceiver.perceive(query.images[i], self.privileged(i))
+        result = perceiver.perceive(query.images[i], self.privileged(i), predicted=predicted)
         T = query.poses[i]
         in_range = np.isfinite(depth) & (depth > 0) & (depth <= max_depth)
         surface = query.camera.backproject_world(depth, T, in_range)
@@ -422,6 +448,60 @@ def _frames_task(state: QueryWorker, item: tuple[_Start, list[int], float, int])
     return out
 
 
+def odometry(
+    previous: NDArray[np.float64], pose: NDArray[np.float64], config: EKFConfig, rng: np.random.Generator
+) -> NDArray[np.float64]:
+    """Simulated wheel odometry from the planar pose ``previous`` to ``pose`` (x, y, yaw): the true
+    motion (forward m, left m, yaw rad) in the robot frame of ``previous`` plus Gaussian noise of
+    ``config``'s per-step sigmas (the noise :meth:`EKFState.predict_odometry` models)."""
+    c, s = np.cos(previous[2]), np.sin(previous[2])
+    dx, dy = pose[:2] - previous[:2]
+    motion = np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(pose[2] - previous[2])])
+    steps = np.hypot(*motion[:2]) / FORWARD_STEP
+    turns = abs(motion[2]) / np.radians(TURN_STEP_DEG)
+    sigma = np.sqrt([config.forward_sigma**2 * steps, config.lateral_sigma**2 * steps,
+                     np.radians(config.turn_sigma_deg) ** 2 * turns])  # fmt: skip
+    return motion + rng.normal(0.0, 1.0, 3) * sigma
+
+
+def _temporal_task(
+    state: QueryWorker, item: tuple[PerceptionConfig, list[int], float, int]
+) -> list[QueryFrame]:
+    """Temporal mode: every frame in order, an :class:`EKFState` carried along by simulated wheel
+    odometry (:func:`odometry`, seeded by (seed, frame)); while it is certain the perceiver tracks
+    (references around the predicted camera), and it takes in the perceived poses. The ground is
+    anchored on the first frame standing still, as in paper mode."""
+    config, frames, max_depth, max_points = item
+    query = state.build.query
+    T0 = query.poses[frames[0]]
+    height, pitch = float(T0[2, 3]), camera_yaw_pitch(T0)[1]
+    perceiver = state.perceiver(replace(config, camera_height=height))
+    perceiver.reset()
+    state.backbone.reseed(np.random.default_rng([state.seed, frames[0]]))
+    perceiver.initialize(query.images[frames[0]], state.privileged(frames[0]))
+    truth = np.array([base_pose(query.poses[i]) for i in frames])
+    margin = np.array([5.0, 5.0, 0.0])
+    low = np.append(truth[:, :2].min(0), -np.pi) - margin
+    high = np.append(truth[:, :2].max(0), np.pi) + margin
+    ekf = EKFState(low, high)
+    ekf.reset(query.images[frames[0]], fallback=(0.5 * (low + high))[:2].tolist() + [0.0])
+    out = []
+    for n, i in enumerate(frames):
+        note(f"frame {i}")
+        if n:
+            rng = np.random.default_rng([state.seed, i, 1])
+            ekf.predict_odometry(odometry(truth[n - 1], truth[n], ekf.config, rng))
+        predicted = ekf.tracking_pose()
+        T_pred = None if predicted is None else camera_T_wc(predicted, height, pitch)
+        frame = state.perceive(perceiver, i, max_depth, max_points, predicted=T_pred)
+        result = frame.result
+        ekf.correct(base_pose(result.T_wc) if result.localized else None)
+        error = float(np.linalg.norm(ekf.estimate[:2] - truth[n, :2])) if ekf.has_estimate else float("nan")
+        record = replace(frame.record, fix=ekf.fix, estimate_error_m=error)
+        out.append(replace(frame, record=record))
+    return out
+
+
 def perceive_queries(
     run: QueryRun,
     *,
@@ -432,14 +512,16 @@ def perceive_queries(
 ) -> list[QueryFrame]:
     """Every query frame of ``run`` perceived and scored (module docstring), in frame order.
 
-    ``workers`` (default: this process) runs the frames. A query run is a sequence and its ground
-    anchor is state carried along it, so the work is split in two phases that give the same
-    frames whatever the number of workers: (1) one task initialises the anchor on the first frame
-    standing still, perceiving further frames in order only while none has anchored the ground;
-    (2) the remaining frames go out in contiguous chunks, each perceived by a fresh map with a
-    copy of that anchor. Nothing else carries over between frames: the pipeline's results do not
-    read the fused map, and each frame's random draws are seeded by (seed, frame). The results
-    carry the pipeline's output without the backbone's raw output (``result.backbone`` None).
+    ``workers`` (default: this process) run the frames. Temporal mode (``run.mode``): one task
+    perceives them in order with the state estimate (:func:`_temporal_task`). Paper mode: a query
+    run is a sequence and its ground anchor is state carried along it, so the work is split in two
+    phases that give the same frames whatever the number of workers: (1) one task initialises the
+    anchor on the first frame standing still, perceiving further frames in order only while none
+    has anchored the ground; (2) the remaining frames go out in contiguous chunks, each perceived
+    by a fresh map with a copy of that anchor. Nothing else carries over between frames: the
+    pipeline's results do not read the fused map, and each frame's random draws are seeded by
+    (seed, frame). The results carry the pipeline's output without the backbone's raw output
+    (``result.backbone`` None).
     """
     own = workers is None
     workers = workers or Workers(1, progress=progress)
@@ -451,6 +533,9 @@ def perceive_queries(
         frames = [int(i) for i in query_subset(n_frames, run.n_queries)]
         setup = QuerySetup(Path(run.build_dir), run.backbone, dict(run.backbone_options), run.seed)
         first = (run.config, frames, max_depth, max_points)
+        if run.mode == "temporal":  # one sequence, one task: the state is carried frame to frame
+            (done,) = workers.map(setup, _temporal_task, [first], desc="perceiving queries in order")
+            return done
         (start,) = workers.map(setup, _start_task, [first], desc="ground anchor")
         rest = frames[len(start.frames) :]
         size = 1 if workers.workers == 1 else max(1, -(-len(rest) // (4 * workers.workers)))
@@ -516,6 +601,7 @@ def _record(
         candidate_translation_m=candidate[0],
         candidate_rotation_deg=candidate[1],
         retrieval_hit=retrieval_hit(result.retrieved, T_w, T),
+        source=result.source,
         retrieved=[int(j) for j in result.retrieved],
         references=[int(j) for j in result.references],
         confidence=result.confidence,
@@ -591,6 +677,34 @@ def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
         hit = ok & (np.nan_to_num(t, nan=np.inf) <= tm) & (np.nan_to_num(rdeg, nan=np.inf) <= deg)
         out[key] = float(hit.mean()) if n else float("nan")
     return out
+
+
+def temporal_metrics(records: list[FrameRecord]) -> dict[str, Any]:
+    """The state estimate's metrics of a temporal-mode run (empty for paper mode): ``fixes`` (count
+    per :data:`~vgpnav_env.perception.state.FIX_OUTCOMES` name), ``tracked_rate`` (frames whose
+    references came from tracking), ``no_estimate_rate`` (frames before the first estimate) and,
+    over the frames with an estimate, its horizontal error: ``estimate_mean_m``,
+    ``estimate_median_m``, ``estimate_p95_m`` and ``estimate_gross_rate`` (more than
+    :data:`~vgpnav_env.measures.GROSS_POSE_ERROR_M` off)."""
+    from vgpnav_env.measures import GROSS_POSE_ERROR_M
+
+    if not records or not records[0].fix:
+        return {}
+    errors = np.array([r.estimate_error_m for r in records], float)
+    have = np.isfinite(errors)
+    fixes: dict[str, int] = {}
+    for r in records:
+        fixes[r.fix] = fixes.get(r.fix, 0) + 1
+    e = errors[have]
+    return {
+        "fixes": dict(sorted(fixes.items())),
+        "tracked_rate": float(np.mean([r.source == "tracking" for r in records])),
+        "no_estimate_rate": float(1.0 - have.mean()),
+        "estimate_mean_m": float(e.mean()) if len(e) else float("nan"),
+        "estimate_median_m": float(np.median(e)) if len(e) else float("nan"),
+        "estimate_p95_m": float(np.percentile(e, 95)) if len(e) else float("nan"),
+        "estimate_gross_rate": float((e > GROSS_POSE_ERROR_M).mean()) if len(e) else float("nan"),
+    }
 
 
 def perception_metrics(records: list[FrameRecord]) -> dict[str, Any]:

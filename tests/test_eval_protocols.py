@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -335,3 +335,60 @@ def test_retrieval_hit_needs_a_reference_within_1m_and_45deg() -> None:
     ])  # fmt: skip
     assert retrieval_hit(np.array([0, 1]), db, T) and not retrieval_hit(np.array([1, 2]), db, T)
     assert not retrieval_hit(np.zeros(0, np.int64), db, T)
+
+
+@pytest.mark.slow
+def test_paper_mode_perceives_every_frame_on_its_own(build: Path) -> None:
+    """Paper mode (the default) reproduces the per-frame results: each frame perceived alone, in
+    reverse order, on a fresh perceiver with the run's ground anchor gives the same record."""
+    from vgpnav_env.eval.perception_runs import QuerySetup, _start_task, query_records
+
+    run = QueryRun(build, "simulated", NOISY, PerceptionConfig.ablation(k=10), 6, 0)
+    assert run.mode == "paper"
+    records = query_records(run, progress=False)
+    state = QuerySetup(build, "simulated", NOISY, 0)()
+    frames = [r.frame for r in records]
+    start = _start_task(state, (run.config, frames, 5.0, 4000))
+    alone = {}
+    for i in reversed(frames):
+        perceiver = state.perceiver(start.config)
+        perceiver.reset(start.anchor)
+        alone[i] = state.perceive(perceiver, i, 5.0, 4000).record
+    for r in records:
+        a = alone[r.frame]
+        assert (a.status, a.references, a.fix) == (r.status, r.references, "")
+        np.testing.assert_allclose([a.translation_m, a.rotation_deg], [r.translation_m, r.rotation_deg])
+
+
+@pytest.mark.slow
+def test_temporal_mode_perceives_the_query_run_in_order_with_the_state_estimate(build: Path) -> None:
+    """Temporal mode on the tiny run (6 frames, noisy simulated backbone): the first fix waits for
+    a consistent second one, then the EKF's estimate stays within 0.1 m and the perceiver tracks."""
+    from vgpnav_env.eval.perception_runs import query_records, temporal_metrics
+    from vgpnav_env.perception.state import FIX_OUTCOMES
+
+    run = QueryRun(build, "simulated", NOISY, PerceptionConfig.ablation(k=10), 6, 0, "temporal")
+    records = query_records(run, progress=False)
+    fixes = [r.fix for r in records]
+    assert set(fixes) <= set(FIX_OUTCOMES) and fixes[:2] == ["unconfirmed", "reset"], fixes
+    errors = np.array([r.estimate_error_m for r in records])
+    assert np.isnan(errors[0]) and np.all(errors[1:] < 0.1), errors
+    m = temporal_metrics(records)
+    assert m["no_estimate_rate"] == pytest.approx(1 / 6) and m["estimate_gross_rate"] == 0.0
+    assert m["tracked_rate"] >= 3 / 6, [r.source for r in records]
+    assert temporal_metrics(query_records(replace(run, mode="paper"), progress=False)) == {}
+    with pytest.raises(ValueError, match="paper, temporal"):
+        QueryRun(build, mode="dream")
+
+
+@pytest.mark.slow
+def test_localization_report_shows_both_perception_modes(build: Path, tmp_path: Path) -> None:
+    out = tmp_path / "loc_temporal"
+    code = main(["eval", "localization", "tiny", "--build", str(build), "--backbone", "simulated",
+                 "--queries", "3", "--perception-mode", "temporal", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    r = report(out)
+    assert r["settings"]["perception mode"] == "temporal" and set(r["modes"]) == {"paper", "temporal"}
+    assert r["modes"]["paper"]["lost_rate"] == 0.0 and r["modes"]["temporal"]["no_estimate_rate"] > 0
+    assert r["modes"]["temporal"]["cpu_s_per_frame"] > 0 and "estimate_p95_m" in r
+    assert "## Perception modes" in (out / "report.md").read_text()
