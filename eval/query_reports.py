@@ -26,9 +26,11 @@ from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
     GROSS_ERROR,
+    RECALL_THRESHOLDS,
     FrameRecord,
     QueryRun,
     confidence_roc,
+    is_gross,
     localization_metrics,
     pose_errors,
 )
@@ -167,9 +169,48 @@ def lost_table(metrics: dict[str, Any]) -> str:
     return "## Lost queries by reason\n\n" + markdown_table(["reason", "count"], sorted(lost.items()))
 
 
+#: The gross-error rate a trusted pose may have (issue 8's target): :func:`trust_metrics`.
+TRUSTED_GROSS_RATE = 0.01
+
+
+def trust_metrics(
+    records: Sequence[FrameRecord], max_gross_rate: float = TRUSTED_GROSS_RATE
+) -> dict[str, float]:
+    """What a confidence threshold that makes the poses trustworthy costs, read off the ROC.
+
+    ``trust_confidence``: the lowest threshold on ``confidence`` such that at most
+    ``max_gross_rate`` of the localized frames at or above it are gross (:data:`GROSS_ERROR`); 0
+    when all localized frames already qualify, inf when no threshold does (the most confident
+    pose is gross). ``trust_lost_rate``: the queries lost or below it (of all queries);
+    ``trust_recall_5cm_5deg``: the queries kept and within 5 cm / 5 deg (of all queries).
+    """
+    n = len(records)
+    loc = [r for r in records if r.status == "localized"]
+    conf = np.array([r.confidence for r in loc], float)
+    gross = np.array([bool(is_gross(r.translation_m, r.rotation_deg)) for r in loc], bool)
+    threshold = float("inf")
+    if len(loc) and gross.sum() <= max_gross_rate * len(loc):
+        threshold = 0.0
+    else:
+        for t in np.unique(conf):  # ascending: the first that qualifies keeps the most frames
+            keep = conf >= t
+            if gross[keep].sum() <= max_gross_rate * keep.sum():
+                threshold = float(t)
+                break
+    keep = conf >= threshold
+    tm, deg = RECALL_THRESHOLDS["recall_5cm_5deg"]
+    right = np.array([r.translation_m <= tm and r.rotation_deg <= deg for r in loc], bool)
+    return {
+        "trust_confidence": threshold,
+        "trust_lost_rate": float(1.0 - keep.sum() / n) if n else float("nan"),
+        "trust_recall_5cm_5deg": float((keep & right).sum() / n) if n else float("nan"),
+    }
+
+
 def localization_summary(records: Sequence[FrameRecord]) -> dict[str, Any]:
-    """:func:`localization_metrics` + :func:`time_metrics`: the numbers every query report shows."""
-    return {**localization_metrics(list(records)), **time_metrics(records)}
+    """:func:`localization_metrics` + :func:`trust_metrics` + :func:`time_metrics`: the numbers every
+    query report shows."""
+    return {**localization_metrics(list(records)), **trust_metrics(records), **time_metrics(records)}
 
 
 def scene_report(
@@ -200,7 +241,10 @@ def scene_report(
         "and `gross_rate` (> 0.5 m or 10 deg) are over localized queries. `worst.png`: the worst "
         "localized frames, each query beside the references its pose came from (titles: distance "
         "and angle to the true query pose). `confidence.png`: ROC of the per-frame confidence of "
-        "every verified pose (kept or rejected) as a test of right (not gross) against gross.",
+        "every verified pose (kept or rejected) as a test of right (not gross) against gross. "
+        "`trust_confidence`: the lowest confidence threshold that leaves at most 1 % gross errors "
+        "among the localized frames; `trust_lost_rate` / `trust_recall_5cm_5deg`: the lost rate and "
+        "recall if frames below it were dropped too (what trusting every pose would cost).",
         frame_table(records),
     ]
     labels = {"localized": "the pipeline returned a verified metric pose"}

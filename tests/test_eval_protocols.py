@@ -20,7 +20,7 @@ from vgpnav_env.eval.perception_runs import (
     query_subset,
     retrieval_hit,
 )
-from vgpnav_env.eval.query_reports import localization_summary, scene_report, worst_frames
+from vgpnav_env.eval.query_reports import localization_summary, scene_report, trust_metrics, worst_frames
 from vgpnav_env.geometry import camera_pose
 from vgpnav_env.perception.pipeline import LOST_REASONS, PerceptionConfig
 
@@ -114,6 +114,29 @@ def test_metrics_expose_a_planted_gross_error() -> None:
     p = perception_metrics(records)
     assert p["n_frames"] == 5 and p["n_lost"] == 1 and p["acc_m"] == pytest.approx(0.05)
     assert p["overall_median_m"] == pytest.approx(0.045)
+
+
+def test_trust_threshold_is_read_off_the_confidences_with_its_cost() -> None:
+    nan = float("nan")
+    records = [_frame(0, 0.01, 0.5), _frame(1, 0.01, 0.5), _frame(2, 0.2, 1.0), _frame(3, 0.01, 0.5),
+               _frame(4, 4.0, 0.0), _frame(5, 3.0, 180.0), _frame(6, nan, nan, "ambiguous")]  # fmt: skip
+    for r, c in zip(records, (0.9, 0.8, 0.6, 0.4, 0.7, 0.5, 0.0), strict=True):
+        r.confidence = c
+    # No gross pose at or above 0.8 (the gross ones have 0.7 and 0.5): 2 of 7 queries kept, both right.
+    m = trust_metrics(records)
+    assert m["trust_confidence"] == 0.8
+    assert m["trust_lost_rate"] == pytest.approx(5 / 7) and m["trust_recall_5cm_5deg"] == pytest.approx(2 / 7)
+    # A quarter of gross poses allowed: 0.6 keeps 4 localized frames, one of them gross.
+    m = trust_metrics(records, max_gross_rate=0.25)
+    assert m["trust_confidence"] == 0.6 and m["trust_lost_rate"] == pytest.approx(3 / 7)
+    assert m["trust_recall_5cm_5deg"] == pytest.approx(2 / 7)  # frame 2 is 0.2 m off
+    # The most confident pose gross: no threshold trusts anything.
+    records[4].confidence = 0.95
+    m = trust_metrics(records)
+    assert m["trust_confidence"] == float("inf") and m["trust_lost_rate"] == 1.0
+    # Nothing gross: every localized frame is trusted, nothing more is lost.
+    m = trust_metrics([r for r in records if r.frame not in (4, 5)])
+    assert m["trust_confidence"] == 0.0 and m["trust_lost_rate"] == pytest.approx(1 / 5)
 
 
 def _report_of(records: list[FrameRecord], build: Path, out: Path) -> tuple[dict, str]:
