@@ -113,10 +113,7 @@ class PerceptionAStar:
 
     def _uncertain(self) -> bool:
         """Whether the pose is too uncertain to drive on (see the class docstring)."""
-        try:
-            covariance = self.env.get_wrapper_attr("pose_state").covariance
-        except AttributeError:  # a wrapper without a pose state (the model perception)
-            covariance = None
+        covariance = self.env.get_wrapper_attr("pose_state").covariance
         if covariance is None:
             return self.blind > self.max_blind_steps
         return bool(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()) > self.max_sigma)

@@ -172,3 +172,21 @@ def test_calibrate_reads_the_builds_query_depth(home_build):
     assert fit.p_lost[0] > 0.8 and fit.p_lost[-1] < 0.2
     # The pipeline samples every 2nd pixel in both directions.
     assert fit.coverage == pytest.approx(1000 / (-(-width // 2) * -(-height // 2)), rel=1e-6)
+
+
+def test_pose_state_covariance_grows_while_lost(model_env):
+    """The model wrapper's ``pose_state`` (as the pixel wrapper's): the fit's fix covariance on a
+    fix, plus the EKF's forward-step noise per forward step while lost."""
+    from vgpnav_env.perception.state import EKFConfig
+
+    state = model_env.pose_state
+    fix = model_env.model.fix_covariance()
+    obs, _ = model_env.reset(seed=1)
+    np.testing.assert_allclose(state.covariance, fix)
+    np.testing.assert_allclose(state.estimate, obs["pose"], atol=1e-5)  # the observation is float32
+    state.update(state.estimate, localized=False, action=1)
+    state.update(state.estimate, localized=False, action=1)
+    sigma2 = np.linalg.eigvalsh(state.covariance[:2, :2]).max()
+    assert sigma2 == pytest.approx(fix[0, 0] + 2 * EKFConfig().forward_sigma ** 2, rel=1e-6)
+    state.update(state.estimate, localized=True, action=2)
+    np.testing.assert_allclose(state.covariance, fix)

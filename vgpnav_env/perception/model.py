@@ -16,6 +16,10 @@ those frames. :class:`ModelObservation` then replaces the pixel pipeline of
   yaw with a random sign.
 - **While lost.** The pose is carried forward by the robot's odometry (the true relative motion of
   the step, i.e. ideal wheel odometry), as the pixel wrapper carries it forward between fixes.
+- **Pose state.** :class:`ModelPoseState` (``pose_state``, as the pixel wrapper's): the estimate,
+  the localized flag and a covariance -- on a fix that of the fitted error distribution, growing
+  while lost by the EKF's process noise per action (:class:`~vgpnav_env.perception.state.EKFConfig`,
+  what the pixel wrapper's temporal mode assumes; the model's own odometry is ideal).
 - **Map.** Localized frames fuse the rendered depth (every ``point_stride``-th pixel, a random
   ``coverage`` fraction of them, Gaussian noise of ``depth_noise_m`` along the optical axis,
   fitted from the measured Acc) placed with the *estimated* pose, into a log-odds map that starts
@@ -43,6 +47,8 @@ from vgpnav_env.geometry import PinholeCamera, wrap_angle
 from vgpnav_env.grid import GridSpec
 from vgpnav_env.measures import EstimateState, Measurements
 from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
+from vgpnav_env.perception.state import EKFConfig
+from vgpnav_env.robot import Action
 
 #: Errors above (metres, degrees) are gross (as the localization reports count them).
 GROSS_ERROR = (0.5, 10.0)
@@ -88,6 +94,13 @@ class PerceptionModel:
             k = int(rng.integers(len(self.gross_translation_m)))
             return self.gross_translation_m[k], self.gross_rotation_deg[k]
         return float(np.exp(rng.normal(*self.log_translation))), float(np.exp(rng.normal(*self.log_rotation)))
+
+    def fix_covariance(self) -> NDArray[np.float64]:
+        """3x3 covariance over (x, y, yaw) (m^2, rad^2) of a localized frame's non-gross error: the
+        mean squared translation error split over the two axes, the mean squared rotation error
+        (gross errors are outliers a covariance does not describe, as for the EKF's fixes)."""
+        t2, r2 = [float(np.exp(2 * m + 2 * s**2)) for m, s in (self.log_translation, self.log_rotation)]
+        return np.diag([t2 / 2, t2 / 2, np.radians(np.sqrt(r2)) ** 2])
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -202,6 +215,45 @@ def prior_map(source: str, spec: GridSpec, robot_radius: float, robot_height: fl
 _PRIORS: dict[tuple, NDArray[np.float32]] = {}
 
 
+class ModelPoseState:
+    """The ``pose_state`` of :class:`ModelObservation` (the read side of
+    :class:`~vgpnav_env.perception.state.PoseState`): ``estimate`` (x, y, yaw) in W, ``localized``,
+    ``fix`` and ``covariance`` -- ``fix_covariance`` after a fix, plus the EKF's process noise
+    (``ekf``) per action while lost."""
+
+    def __init__(self, fix_covariance: NDArray[np.float64], ekf: EKFConfig | None = None) -> None:
+        self.fix_covariance = np.asarray(fix_covariance, float)
+        ekf = ekf or EKFConfig()
+        self._forward = np.diag([ekf.forward_sigma**2, ekf.lateral_sigma**2])
+        self._turn = np.radians(ekf.turn_sigma_deg) ** 2
+        self.estimate = np.zeros(3)
+        self.localized = False
+        self._P = self.fix_covariance.copy()
+
+    @property
+    def fix(self) -> str:
+        return "accepted" if self.localized else "none"
+
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        return self._P.copy()
+
+    def tracking_pose(self) -> None:
+        return None
+
+    def update(self, estimate: NDArray[np.float64], localized: bool, action: Any = None) -> None:
+        """This frame's ``estimate`` and outcome, after ``action`` (None at the episode start)."""
+        self.estimate, self.localized = np.asarray(estimate, float).copy(), bool(localized)
+        if localized or action is None:
+            self._P = self.fix_covariance.copy()
+        elif int(action) == Action.FORWARD:
+            c, s = np.cos(self.estimate[2]), np.sin(self.estimate[2])
+            R = np.array([[c, -s], [s, c]])
+            self._P[:2, :2] += R @ self._forward @ R.T
+        elif int(action) in (Action.TURN_LEFT, Action.TURN_RIGHT):
+            self._P[2, 2] += self._turn
+
+
 class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """``model`` perception (PRIVILEGED, module docstring) over ``VGPNav/PointGoal-v0``: the
     observation space, ``info`` entries and ``fused_map`` of :class:`~vgpnav_env.wrappers.VGPNavObservation`.
@@ -255,6 +307,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._lost = False
         self._true = np.zeros(3)
         self.measurements = Measurements("estimate")
+        self.pose_state = ModelPoseState(self.model.fix_covariance())
 
     def _sampled_rays(self, camera: PinholeCamera) -> NDArray[np.float64]:
         return camera.rays()[:: self.point_stride, :: self.point_stride].reshape(-1, 3)
@@ -266,7 +319,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._true = np.asarray(info["pose"], float)
         self._lost = False
         self.estimate = self._true.copy()  # the robot initialises standing still where it starts
-        return self._observe(obs, info, first=True)
+        return self._observe(obs, info, action=None)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
@@ -277,7 +330,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.estimate = self.estimate + np.array([c * dx - s * dy, s * dx + c * dy, true[2] - self._true[2]])
         self.estimate[2] = wrap_angle(self.estimate[2])
         self._true = true
-        new_obs, info = self._observe(obs, info, first=False)
+        new_obs, info = self._observe(obs, info, action=action)
         return new_obs, reward, terminated, truncated, info
 
     def _perceive(self, depth: NDArray[np.float32]) -> bool:
@@ -309,16 +362,18 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )
         return True
 
-    def _observe(self, obs: dict[str, NDArray], info: dict[str, Any], first: bool):
+    def _observe(self, obs: dict[str, NDArray], info: dict[str, Any], action: Any):
+        """The observation and info of this frame (``action``: the step's, None after reset)."""
         from vgpnav_env.wrappers import navigation_observation
 
         depth = info["depth"] if info["depth"] is not None else self.env.unwrapped.render_depth()
         localized = self._perceive(depth)
+        self.pose_state.update(self.estimate, localized, action)
         new_obs = navigation_observation(
             self.observation_space, self.estimate, obs["goal"], self.fused_map, localized, self.map_resolution
         )
         state = EstimateState(new_obs["pose"], localized, self._true)
-        (self.measurements.reset if first else self.measurements.update)(state)
+        (self.measurements.reset if action is None else self.measurements.update)(state)
         info = dict(info)
         info.update(
             perception={"status": "localized" if localized else "lost", "mode": "model"},
