@@ -37,6 +37,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from vgpnav_env.agents.guidance import GUIDANCE
 from vgpnav_env.arguments import positive_int_arg, seed_arg
 from vgpnav_env.perception.backbones import BACKBONES
 
@@ -108,21 +109,35 @@ def make_vec(config: dict[str, Any], n_envs: int, seed: int, end_penalty: bool =
 
 
 class SB3Policy:
-    """A saved stable-baselines3 policy acting deterministically."""
+    """A saved stable-baselines3 policy acting deterministically. A policy trained with
+    ``guidance`` computes its path channel itself from ``env`` (the perception-wrapped env it acts
+    in: its ``fused_map``, as the A* agent reads it)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, env: gym.Env | None = None) -> None:
         from stable_baselines3 import PPO
 
+        from vgpnav_env.agents.guidance import path_channel_for
         from vgpnav_env.agents.ppo_policy import single_thread
 
         single_thread()
         self.model = PPO.load(str(path), device="cpu")
+        self.env = env
+        self.channel = None
+        if load_config(path)["env"].get("guidance") is not None:
+            if env is None:
+                raise ValueError(f"{path} was trained with planner guidance: give the env it acts in")
+            self.channel = path_channel_for(env, self.model.observation_space)
 
     def reset(self) -> None:
-        return None
+        if self.channel is not None:
+            self.channel.reset()
 
     def act(self, obs: Any) -> Any:
+        from vgpnav_env.agents.guidance import PATH_KEY
+
         space = self.model.observation_space
+        if self.channel is not None:
+            obs = {**obs, PATH_KEY: self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
         if isinstance(obs, dict) and hasattr(space, "spaces"):
             obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
         action, _ = self.model.predict(obs, deterministic=True)
@@ -168,6 +183,7 @@ def train_config(
     perception: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
     database_dir: str | Path | None = None,
+    guidance: str | None = None,
 ) -> dict[str, Any]:
     """The :func:`vgpnav_env.make_env` config of a training run (JSON-ready)."""
     scenes = [scenes] if isinstance(scenes, str) else list(scenes)
@@ -179,6 +195,7 @@ def train_config(
         "perception": perception,
         "env": kwargs,
         "database_dir": str(database_dir) if database_dir is not None else None,
+        "guidance": guidance,
     }
 
 
@@ -209,27 +226,36 @@ def train_ppo(
     ppo_kwargs: dict[str, Any] | None = None,
     checkpoint_every: int = 10_000,
     database_dir: str | Path | None = None,
+    guidance: str | None = None,
+    curriculum: bool = True,
 ) -> Path:
     """Train (or resume) PPO for ``steps`` total env steps on ``scene`` (one source or several);
-    returns the final model path. With a ``perception`` the recipe of the module docstring."""
+    returns the final model path. With a ``perception`` the recipe of the module docstring
+    (``guidance``: the planner's path channel; ``curriculum``: the goal-distance curriculum)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import configure
 
-    from vgpnav_env.agents.ppo_policy import NavigationExtractor, SuccessLogger, single_thread
+    from vgpnav_env.agents.ppo_policy import GoalCurriculum, NavigationExtractor, SuccessLogger, single_thread
     from vgpnav_env.scenes import list_layouts
 
     if steps <= 0:
         raise ValueError(f"steps must be positive, got {steps}")
     if perception is not None and perception not in PERCEPTIONS:
         raise ValueError(f"unknown perception {perception!r}; allowed: {list(PERCEPTIONS)}")
+    if guidance is not None and perception is None:
+        raise ValueError("guidance needs a perception (it plans on the estimated map)")
     for source in [scene] if isinstance(scene, str) else scene:
         list_layouts(source)  # an unknown scene fails here, before anything is written
     single_thread()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     saved = json.loads((out / CONFIG_FILE).read_text()) if resume and (out / CONFIG_FILE).is_file() else None
-    run_config = saved or {"env": train_config(scene, perception, env_kwargs, database_dir), "seed": seed}
+    run_config = saved or {
+        "env": train_config(scene, perception, env_kwargs, database_dir, guidance),
+        "seed": seed,
+        "curriculum": bool(curriculum and perception is not None),
+    }
     if saved is None:
         (out / CONFIG_FILE).write_text(json.dumps(run_config, indent=2) + "\n")
     config = run_config["env"]
@@ -259,7 +285,10 @@ def train_ppo(
                 save_path=str(out / "checkpoints"),
                 name_prefix="ppo",
             )
-            callback = CallbackList([checkpoints, SuccessLogger()])
+            callbacks = [checkpoints, SuccessLogger()]
+            if run_config.get("curriculum"):
+                callbacks.append(GoalCurriculum())
+            callback = CallbackList(callbacks)
             model.learn(remaining, callback=callback, reset_num_timesteps=ckpt is None)
             model.save(str(out / "checkpoints" / f"ppo_{model.num_timesteps}_steps"))
         model.save(str(out / MODEL_FILE))
@@ -288,17 +317,24 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     for key, label in (("rollout/success_rate", "success rate"), ("rollout/spl", "SPL")):
         ax.plot(steps, [float(r[key]) for r in rows], label=label)
     ax_return.plot(steps, [float(r["rollout/ep_rew_mean"]) for r in rows], color="tab:green")
+    if rows[0].get("curriculum/max_geodesic"):
+        ax_goal = ax.twinx()
+        limit = [float(r["curriculum/max_geodesic"]) for r in rows]
+        ax_goal.plot(steps, limit, color="tab:gray", ls="--", label="curriculum: max goal distance")
+        ax_goal.set(ylabel="max goal distance (m)", ylim=(0, max(limit) * 1.1))
+        ax_goal.legend(loc="upper right")
     config = load_config(run_dir)["env"]
     scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
+    guided = f", {config['guidance']} guidance" if config.get("guidance") else ""
     ax.set(
         ylabel="mean, last 100 episodes",
         ylim=(0, 1),
-        title=f"PPO, {config['perception']} perception, {', '.join(scenes)}",
+        title=f"PPO, {config['perception']} perception{guided}, {', '.join(scenes)}",
     )
     ax_return.set(xlabel="env steps", ylabel="episode return (Habitat reward)")
     for a in (ax, ax_return):
         a.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(loc="upper left")
     fig.tight_layout()
     out = Path(out) if out is not None else run_dir / CURVE_FILE
     fig.savefig(out, dpi=100)
@@ -318,6 +354,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=PERCEPTIONS,
         default=None,
         help="model (privileged error model, RL at speed) or a backbone (pixels); default: none (raw env)",
+    )
+    parser.add_argument(
+        "--guidance",
+        choices=GUIDANCE,
+        default=None,
+        help="path: add the agent's own A* path on its estimated map as a map channel (hierarchical; "
+        "default: plain observation)",
+    )
+    parser.add_argument(
+        "--no-curriculum",
+        dest="curriculum",
+        action="store_false",
+        help="sample goals at every distance from the start (default: goal-distance curriculum)",
     )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
     parser.add_argument(
@@ -340,6 +389,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(
             "PPO trains with --perception model, classical or simulated; learned is for vgpnav eval"
         )
+    if args.guidance is not None and args.perception is None:
+        raise ValueError("--guidance needs --perception (it plans on the estimated map)")
     if args.database is not None and len(args.scene) > 1:
         raise ValueError("--database names one scene's build: give one scene")
     path = train_ppo(
@@ -352,6 +403,8 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         checkpoint_every=args.checkpoint_every,
         database_dir=args.database,
+        guidance=args.guidance,
+        curriculum=args.curriculum,
     )
     if args.perception is not None:
         print(f"learning curve: {plot_learning_curve(args.out)}")

@@ -26,7 +26,8 @@ def single_thread() -> None:
 class NavigationExtractor(BaseFeaturesExtractor):
     """Features of a navigation observation (``vgpnav_env.wrappers.navigation_space``).
 
-    The map crop (1, S, S; SB3 scales it to [0, 1]) through 3 strided convolutions to
+    The map crop (1, S, S; SB3 scales it to [0, 1]), stacked with the planner's ``path`` channel
+    when the space has one (``agents.guidance``), through 3 strided convolutions to
     ``map_features``; the goal as (log(1 + distance m), cos, sin of the bearing) and the localized
     flag to ``goal_features``; concatenated. ``pose`` (world coordinates, scene specific) is ignored.
     """
@@ -35,7 +36,9 @@ class NavigationExtractor(BaseFeaturesExtractor):
         self, observation_space: spaces.Dict, map_features: int = 128, goal_features: int = 64
     ) -> None:
         super().__init__(observation_space, map_features + goal_features)
+        self.guided = "path" in observation_space.spaces
         shape = observation_space["map"].shape
+        shape = (shape[0] * (2 if self.guided else 1), *shape[1:])
         self.cnn = nn.Sequential(
             nn.Conv2d(shape[0], 16, 5, stride=2, padding=2),
             nn.ReLU(),
@@ -56,7 +59,8 @@ class NavigationExtractor(BaseFeaturesExtractor):
         g = torch.cat(
             [torch.log1p(goal[:, :1]), torch.cos(goal[:, 1:2]), torch.sin(goal[:, 1:2]), localized], 1
         )
-        return torch.cat([self.map_fc(self.cnn(obs["map"])), self.goal_fc(g)], dim=1)
+        grid = torch.cat([obs["map"], obs["path"]], 1) if self.guided else obs["map"]
+        return torch.cat([self.map_fc(self.cnn(grid)), self.goal_fc(g)], dim=1)
 
 
 class SuccessLogger(BaseCallback):
@@ -70,3 +74,46 @@ class SuccessLogger(BaseCallback):
         if episodes:
             for key, name in LOGGED.items():
                 self.logger.record(name, float(np.mean([float(e[key]) for e in episodes])))
+
+
+class GoalCurriculum(BaseCallback):
+    """Goal-distance curriculum: episodes start with goals at most ``start`` m (geodesic) away;
+    when ``threshold`` of the last ``window`` episodes sampled at the current limit succeed, the
+    limit grows by ``step`` m, up to ``stop`` m (the env's default range). Logs
+    ``curriculum/max_geodesic``. Sets the range through the envs' ``set_goal_range``."""
+
+    def __init__(
+        self,
+        start: float = 2.0,
+        step: float = 1.0,
+        stop: float = 10.0,
+        threshold: float = 0.5,
+        window: int = 50,
+        min_geodesic: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.start, self.step, self.stop = float(start), float(step), float(stop)
+        self.threshold, self.window, self.min_geodesic = float(threshold), int(window), float(min_geodesic)
+        self.limit = self.start
+        self.results: list[float] = []
+
+    def _set(self) -> None:
+        self.training_env.env_method("set_goal_range", self.min_geodesic, self.limit)
+        self.results = []
+
+    def _on_training_start(self) -> None:
+        self._set()
+
+    def _on_step(self) -> bool:
+        # Episodes that ended in this step; the first ones after a change may have started before it.
+        for info in self.locals.get("infos", []):
+            if "episode" in info:
+                self.results.append(float(info.get("success", 0.0)))
+        recent = self.results[-self.window :]
+        if self.limit < self.stop and len(recent) >= self.window and np.mean(recent) >= self.threshold:
+            self.limit = min(self.limit + self.step, self.stop)
+            self._set()
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self.logger.record("curriculum/max_geodesic", self.limit)

@@ -201,7 +201,7 @@ def make_policy(plan: AgentPlan, env: gym.Env) -> Policy:
         return OracleAgent(env)
     if plan.name == "astar":
         return PerceptionAStar(env)
-    return ppo.SB3Policy(plan.model)
+    return ppo.SB3Policy(plan.model, env)
 
 
 def make_env(plan: AgentPlan, env_kwargs: dict[str, Any], wrapper_kwargs: dict[str, Any]) -> gym.Env:

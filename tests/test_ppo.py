@@ -109,3 +109,32 @@ def test_end_penalty_charges_the_distance_left_on_failure_only():
     wrapped.reset(options={"start": (goal[0], goal[1], start[2]), "goal": tuple(goal)})
     _, reward, _, _, info = wrapped.step(0)  # stop on the goal: Habitat's reward, no penalty
     assert info["success"] and reward == pytest.approx(2.5 - 0.01)
+
+
+def test_guided_recipe_sees_the_path_channel_and_evaluates_on_the_protocol(tmp_path):
+    """``guidance="path"``: the policy's CNN takes the map and the planner's path channel; the
+    evaluated policy computes the channel itself from the protocol's env."""
+    from stable_baselines3 import PPO
+
+    out = tmp_path / "guided"
+    path = train_ppo(
+        "home",
+        128,
+        out,
+        n_envs=1,
+        perception="model",
+        guidance="path",
+        env_kwargs={"image_size": (40, 30), "max_steps": 20},
+        ppo_kwargs={"n_steps": 64},
+    )
+    model = PPO.load(str(path), device="cpu")
+    assert model.policy.features_extractor.guided and "path" in model.observation_space.spaces
+    assert load_config(out)["env"]["guidance"] == "path" and load_config(out)["curriculum"]
+    progress = (out / "tb" / "progress.csv").read_text().splitlines()
+    assert "curriculum/max_geodesic" in progress[0].split(",")
+    report = evaluate_navigation(
+        "home", agent=f"ppo:{out}", episodes=1, perception="model", env_kwargs={"max_steps": 10}
+    )
+    assert report["episodes"] == 1 and report["records"][0]["steps"] <= 10
+    with pytest.raises(ValueError, match="guidance needs a perception"):
+        train_ppo("home", 64, tmp_path / "unused", guidance="path")

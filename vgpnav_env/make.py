@@ -17,6 +17,8 @@ Config keys (all optional):
   depth only).
 - ``wrapper``: keyword arguments of the perception wrapper.
 - ``database_dir``: the scene's build directory for a backbone (default: the cached build).
+- ``guidance``: None, or ``path``: the agent's A* path on its estimated map as an extra observation
+  channel (:mod:`vgpnav_env.agents.guidance`; needs a perception).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from typing import Any
 import gymnasium as gym
 
 ENV_ID = "VGPNav/PointGoal-v0"
-CONFIG_KEYS = ("scene", "env", "perception", "wrapper", "database_dir")
+CONFIG_KEYS = ("scene", "env", "perception", "wrapper", "database_dir", "guidance")
 
 
 def env_kwargs_from(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -55,12 +57,22 @@ class SceneSampler(gym.Env):
         self.observation_space = self.envs[0].observation_space
         self.action_space = self.envs[0].action_space
         self.current = self.envs[0]
+        self.goal_range: tuple[float, float] | None = None
+
+    def set_goal_range(self, min_geodesic: float, max_geodesic: float) -> None:
+        """The episodes' geodesic distance range (m) in every scene, from the next ``reset`` on."""
+        self.goal_range = (float(min_geodesic), float(max_geodesic))
+        for env in self.envs:
+            if env is not None:
+                env.get_wrapper_attr("set_goal_range")(*self.goal_range)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         i = int(self.np_random.integers(len(self.envs)))
         if self.envs[i] is None:
             self.envs[i] = make_env(self.configs[i])
+            if self.goal_range is not None:
+                self.envs[i].get_wrapper_attr("set_goal_range")(*self.goal_range)
         self.current = self.envs[i]
         return self.current.reset(seed=int(self.np_random.integers(2**31)), options=options)
 
@@ -96,15 +108,28 @@ def make_env(config: Mapping[str, Any] | None = None) -> gym.Env:
         if wrapper:
             raise ValueError("config['wrapper'] needs config['perception']")
         return env
+    guidance = config.get("guidance")
+    if guidance is not None and perception is None:
+        raise ValueError("config['guidance'] needs config['perception']")
     if perception == "model":
         from vgpnav_env.perception.model import ModelObservation
 
-        return ModelObservation(env, **wrapper)
-    from vgpnav_env.perception.backbones import BACKBONES
-    from vgpnav_env.wrappers import VGPNavObservation
+        wrapped: gym.Env = ModelObservation(env, **wrapper)
+    else:
+        from vgpnav_env.perception.backbones import BACKBONES
+        from vgpnav_env.wrappers import VGPNavObservation
 
-    if perception not in BACKBONES:
-        raise ValueError(
-            f"unknown perception {perception!r}; allowed: None, 'model' or a backbone {sorted(BACKBONES)}"
+        if perception not in BACKBONES:
+            raise ValueError(
+                f"unknown perception {perception!r}; allowed: None, 'model' or a backbone {sorted(BACKBONES)}"
+            )
+        wrapped = VGPNavObservation(
+            env, backbone=perception, database_dir=config.get("database_dir"), **wrapper
         )
-    return VGPNavObservation(env, backbone=perception, database_dir=config.get("database_dir"), **wrapper)
+    if guidance is None:
+        return wrapped
+    from vgpnav_env.agents.guidance import GUIDANCE, PathGuidance
+
+    if guidance not in GUIDANCE:
+        raise ValueError(f"unknown guidance {guidance!r}; allowed: None or one of {list(GUIDANCE)}")
+    return PathGuidance(wrapped)

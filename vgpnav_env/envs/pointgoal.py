@@ -237,6 +237,13 @@ class PointGoalEnv(gym.Env):
         self._last_action: Any = None
         self.trajectory: list[NDArray[np.float64]] = []
 
+    def set_goal_range(self, min_geodesic: float, max_geodesic: float) -> None:
+        """Geodesic distance range (m) of the episodes sampled from the next ``reset`` on (e.g. a
+        training curriculum)."""
+        if not 0.0 < min_geodesic <= max_geodesic:
+            raise ValueError(f"need 0 < min_geodesic <= max_geodesic, got {min_geodesic}, {max_geodesic}")
+        self.min_geodesic, self.max_geodesic = float(min_geodesic), float(max_geodesic)
+
     # -- ground truth for agents that are allowed to see it (oracle) and for evaluation --------
     @property
     def ground_truth(self) -> GroundTruthMap:

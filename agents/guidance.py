@@ -1,0 +1,140 @@
+"""Planner guidance for learned policies (a hierarchical recipe option, ``--guidance path``).
+
+The agent's own A* path on its *estimated* map -- :class:`~vgpnav_env.agents.astar.AStarAgent`
+planning on the perception wrapper's ``fused_map`` from the estimated pose to the goal the
+observation gives (pose + ``goal_rel``) -- drawn into a channel aligned with the observation's
+egocentric map crop, as Active Neural SLAM's global planner hands its local policy a short-term
+goal. Nothing privileged: the same inputs as ``PerceptionAStar``. The policy then learns the local
+part (following the path, stopping at the goal); the plain recipe has to learn the planning too.
+
+:class:`PathChannel` computes the channel; :class:`PathGuidance` adds it to the observations of a
+perception-wrapped env (training); a policy evaluated in an env without the wrapper computes it
+with its own :class:`PathChannel` from the same env (``SB3Policy``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+from vgpnav_env.agents.astar import AStarAgent, _densify
+
+#: Observation key of the path channel, and the guidance kinds (None: plain observation).
+PATH_KEY = "path"
+GUIDANCE = ("path",)
+#: Pixel values of the channel: the path, and the goal (3x3 pixels, when inside the crop).
+PATH_VALUE, GOAL_VALUE = 128, 255
+
+
+class PathChannel:
+    """The A* path from the estimated pose to the goal in the egocentric crop frame of
+    :meth:`~vgpnav_env.perception.occupancy.LogOddsMap.egocentric_crop` (row 0 ahead, columns to
+    the right, ``resolution`` metres per pixel): ``(1, size, size)`` uint8, :data:`PATH_VALUE` on
+    the path, :data:`GOAL_VALUE` at the goal, 0 elsewhere. Replans (:meth:`_replan`) when newly
+    occupied cells block the path, the robot strays ``replan_distance`` m from it, and every
+    ``replan_every`` steps (cells that became free may open a shorter way)."""
+
+    def __init__(
+        self,
+        size: int,
+        resolution: float,
+        robot_radius: float,
+        replan_distance: float = 0.3,
+        replan_every: int = 10,
+    ) -> None:
+        self.size, self.resolution = int(size), float(resolution)
+        self.planner = AStarAgent(robot_radius=robot_radius)
+        self.replan_distance, self.replan_every = float(replan_distance), int(replan_every)
+        self.reset()
+
+    def reset(self) -> None:
+        self.planner.reset()
+        self._key: tuple | None = None
+        self._occupied: NDArray[np.bool_] | None = None
+        self._dense: NDArray[np.float64] | None = None
+        self._since = 0
+
+    def _replan(self, occupied: NDArray[np.bool_], spec: Any, goal: NDArray, xy: NDArray) -> bool:
+        """Whether to plan again: a new goal or grid, no path, strayed from it, every
+        ``replan_every`` steps, or a newly occupied cell within the robot's inflation of the path."""
+        if (
+            self._dense is None
+            or self._key != (spec, tuple(goal.round(3)))
+            or self._since >= self.replan_every
+        ):
+            return True
+        if np.min(np.linalg.norm(self._dense - xy, axis=1)) > self.replan_distance:
+            return True
+        new = np.argwhere(occupied & ~self._occupied)
+        if len(new) == 0:
+            return False
+        points = spec.cell_to_world(new)
+        near = self.planner.inflation + spec.resolution
+        return bool((np.linalg.norm(points[:, None] - self._dense[None], axis=-1) < near).any())
+
+    def __call__(self, obs: dict[str, Any], fused_map: Any) -> NDArray[np.uint8]:
+        x, y, yaw = np.asarray(obs["pose"], float)
+        dist, bearing = np.asarray(obs["goal_rel"], float)
+        goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
+        occupied = fused_map.occupied()
+        if self._replan(occupied, fused_map.spec, goal, np.array([x, y])):
+            self.planner.plan((x, y, yaw), occupied, fused_map.spec, goal)
+            path = self.planner.path
+            self._dense = None if path is None else _densify(path, 0.5 * self.resolution)
+            self._key, self._since = (fused_map.spec, tuple(goal.round(3))), 0
+        self._occupied = occupied
+        self._since += 1
+        out = np.zeros((1, self.size, self.size), np.uint8)
+        if self._dense is not None:
+            self._draw(out[0], self._dense, (x, y, yaw), PATH_VALUE, 0)
+        self._draw(out[0], goal[None], (x, y, yaw), GOAL_VALUE, 1)
+        return out
+
+    def _draw(
+        self, img: NDArray[np.uint8], xy: NDArray[np.float64], pose: tuple, value: int, grow: int
+    ) -> None:
+        x, y, yaw = pose
+        d = xy - (x, y)
+        ahead = d[:, 0] * np.cos(yaw) + d[:, 1] * np.sin(yaw)
+        right = d[:, 0] * np.sin(yaw) - d[:, 1] * np.cos(yaw)
+        centre = (self.size - 1) / 2.0
+        rows = np.rint(centre - ahead / self.resolution).astype(int)
+        cols = np.rint(centre + right / self.resolution).astype(int)
+        for dr in range(-grow, grow + 1):
+            for dc in range(-grow, grow + 1):
+                r, c = rows + dr, cols + dc
+                inside = (r >= 0) & (r < self.size) & (c >= 0) & (c < self.size)
+                img[r[inside], c[inside]] = value
+
+
+def path_channel_for(env: gym.Env, space: spaces.Dict) -> PathChannel:
+    """A :class:`PathChannel` matching the map crop of ``space`` in the perception-wrapped ``env``."""
+    resolution = float(env.get_wrapper_attr("map_resolution"))
+    return PathChannel(space["map"].shape[-1], resolution, env.unwrapped.robot_radius)
+
+
+class PathGuidance(gym.Wrapper):
+    """Adds the :class:`PathChannel` under :data:`PATH_KEY` to a perception wrapper's observations."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.observation_space = spaces.Dict(
+            {**env.observation_space.spaces, PATH_KEY: env.observation_space["map"]}
+        )
+        self.channel = path_channel_for(env, env.observation_space)
+
+    def _add(self, obs: dict[str, Any]) -> dict[str, Any]:
+        return {**obs, PATH_KEY: self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.channel.reset()
+        return self._add(obs), info
+
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self._add(obs), reward, terminated, truncated, info
