@@ -4,8 +4,11 @@ The agent's own A* path on its *estimated* map -- :class:`~vgpnav_env.agents.ast
 planning on the perception wrapper's ``fused_map`` from the estimated pose to the goal the
 observation gives (pose + ``goal_rel``) -- drawn into a channel aligned with the observation's
 egocentric map crop, as Active Neural SLAM's global planner hands its local policy a short-term
-goal. Nothing privileged: the same inputs as ``PerceptionAStar``. The policy then learns the local
-part (following the path, stopping at the goal); the plain recipe has to learn the planning too.
+goal. Beside the channel, the ``waypoint`` on that path :data:`LOOKAHEAD` m ahead (distance m,
+bearing rad from the estimated heading; the goal itself when there is no path), the short-term goal
+of Active Neural SLAM. Nothing privileged: the same inputs as ``PerceptionAStar``. The policy then
+learns the local part (following the path, stopping at the goal); the plain recipe has to learn
+the planning too.
 
 :class:`PathChannel` computes the channel; :class:`PathGuidance` adds it to the observations of a
 perception-wrapped env (training); a policy evaluated in an env without the wrapper computes it
@@ -22,12 +25,15 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.agents.astar import AStarAgent, _densify
+from vgpnav_env.geometry import wrap_angle
 
-#: Observation key of the path channel, and the guidance kinds (None: plain observation).
-PATH_KEY = "path"
+#: Observation keys of the path channel and of the waypoint, and the guidance kinds (None: plain).
+PATH_KEY, WAYPOINT_KEY = "path", "waypoint"
 GUIDANCE = ("path",)
 #: Pixel values of the channel: the path, and the goal (3x3 pixels, when inside the crop).
 PATH_VALUE, GOAL_VALUE = 128, 255
+#: Distance (m, along the path) of the waypoint ahead of the path point closest to the robot.
+LOOKAHEAD = 0.5
 
 
 class PathChannel:
@@ -56,6 +62,7 @@ class PathChannel:
         self._key: tuple | None = None
         self._occupied: NDArray[np.bool_] | None = None
         self._dense: NDArray[np.float64] | None = None
+        self._along = np.zeros(0)
         self._since = 0
 
     def _replan(self, occupied: NDArray[np.bool_], spec: Any, goal: NDArray, xy: NDArray) -> bool:
@@ -76,7 +83,8 @@ class PathChannel:
         near = self.planner.inflation + spec.resolution
         return bool((np.linalg.norm(points[:, None] - self._dense[None], axis=-1) < near).any())
 
-    def __call__(self, obs: dict[str, Any], fused_map: Any) -> NDArray[np.uint8]:
+    def __call__(self, obs: dict[str, Any], fused_map: Any) -> dict[str, NDArray]:
+        """``{PATH_KEY: (1, size, size) uint8 channel, WAYPOINT_KEY: (distance m, bearing rad)}``."""
         x, y, yaw = np.asarray(obs["pose"], float)
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
@@ -85,14 +93,23 @@ class PathChannel:
             self.planner.plan((x, y, yaw), occupied, fused_map.spec, goal)
             path = self.planner.path
             self._dense = None if path is None else _densify(path, 0.5 * self.resolution)
+            if self._dense is not None:
+                steps = np.linalg.norm(np.diff(self._dense, axis=0), axis=1)
+                self._along = np.concatenate([[0.0], np.cumsum(steps)])
             self._key, self._since = (fused_map.spec, tuple(goal.round(3))), 0
         self._occupied = occupied
         self._since += 1
         out = np.zeros((1, self.size, self.size), np.uint8)
+        waypoint = goal
         if self._dense is not None:
             self._draw(out[0], self._dense, (x, y, yaw), PATH_VALUE, 0)
+            i = int(np.argmin(np.linalg.norm(self._dense - (x, y), axis=1)))
+            j = int(np.searchsorted(self._along, self._along[i] + LOOKAHEAD))
+            waypoint = self._dense[min(j, len(self._dense) - 1)]
         self._draw(out[0], goal[None], (x, y, yaw), GOAL_VALUE, 1)
-        return out
+        d = waypoint - (x, y)
+        polar = np.array([np.hypot(*d), wrap_angle(np.arctan2(d[1], d[0]) - yaw)], np.float32)
+        return {PATH_KEY: out, WAYPOINT_KEY: polar}
 
     def _draw(
         self, img: NDArray[np.uint8], xy: NDArray[np.float64], pose: tuple, value: int, grow: int
@@ -118,17 +135,19 @@ def path_channel_for(env: gym.Env, space: spaces.Dict) -> PathChannel:
 
 
 class PathGuidance(gym.Wrapper):
-    """Adds the :class:`PathChannel` under :data:`PATH_KEY` to a perception wrapper's observations."""
+    """Adds the :class:`PathChannel`'s channel (:data:`PATH_KEY`) and waypoint
+    (:data:`WAYPOINT_KEY`) to a perception wrapper's observations."""
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
+        space = env.observation_space
         self.observation_space = spaces.Dict(
-            {**env.observation_space.spaces, PATH_KEY: env.observation_space["map"]}
+            {**space.spaces, PATH_KEY: space["map"], WAYPOINT_KEY: space["goal_rel"]}
         )
         self.channel = path_channel_for(env, env.observation_space)
 
     def _add(self, obs: dict[str, Any]) -> dict[str, Any]:
-        return {**obs, PATH_KEY: self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
+        return {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)

@@ -47,8 +47,8 @@ logger = logging.getLogger(__name__)
 #: the policy sees no image, but perception needs ``PERCEPTION_IMAGE_SIZE``.
 DEFAULT_ENV_KWARGS: dict[str, Any] = {"image_size": (64, 48), "layout": "changed"}
 PERCEPTION_IMAGE_SIZE = (160, 120)
-#: Episodes of the perception recipe: shorter than evaluation's 500 steps (they need ~40).
-PERCEPTION_ENV_KWARGS: dict[str, Any] = {"image_size": PERCEPTION_IMAGE_SIZE, "max_steps": 250}
+#: Episodes of the perception recipe: shorter than evaluation's 500 steps (10 m goals need ~60).
+PERCEPTION_ENV_KWARGS: dict[str, Any] = {"image_size": PERCEPTION_IMAGE_SIZE, "max_steps": 150}
 DEFAULT_PPO_KWARGS: dict[str, Any] = {"n_steps": 128, "batch_size": 64, "n_epochs": 4, "learning_rate": 3e-4}
 #: PPO settings of the perception recipe.
 RECIPE_PPO_KWARGS: dict[str, Any] = {
@@ -133,11 +133,9 @@ class SB3Policy:
             self.channel.reset()
 
     def act(self, obs: Any) -> Any:
-        from vgpnav_env.agents.guidance import PATH_KEY
-
         space = self.model.observation_space
         if self.channel is not None:
-            obs = {**obs, PATH_KEY: self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
+            obs = {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
         if isinstance(obs, dict) and hasattr(space, "spaces"):
             obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
         action, _ = self.model.predict(obs, deterministic=True)

@@ -28,8 +28,9 @@ class NavigationExtractor(BaseFeaturesExtractor):
 
     The map crop (1, S, S; SB3 scales it to [0, 1]), stacked with the planner's ``path`` channel
     when the space has one (``agents.guidance``), through 3 strided convolutions to
-    ``map_features``; the goal as (log(1 + distance m), cos, sin of the bearing) and the localized
-    flag to ``goal_features``; concatenated. ``pose`` (world coordinates, scene specific) is ignored.
+    ``map_features``; the goal as (log(1 + distance m), cos, sin of the bearing), the same of the
+    planner's ``waypoint`` when guided, and the localized flag to ``goal_features``; concatenated.
+    ``pose`` (world coordinates, scene specific) is ignored.
     """
 
     def __init__(
@@ -51,14 +52,15 @@ class NavigationExtractor(BaseFeaturesExtractor):
         with torch.no_grad():
             n = self.cnn(torch.zeros(1, *shape)).shape[1]
         self.map_fc = nn.Sequential(nn.Linear(n, map_features), nn.ReLU())
-        self.goal_fc = nn.Sequential(nn.Linear(4, goal_features), nn.ReLU())
+        self.goal_fc = nn.Sequential(nn.Linear(7 if self.guided else 4, goal_features), nn.ReLU())
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         goal = obs["goal_rel"]
         localized = obs["localized"].reshape(len(goal), -1)[:, -1:]  # SB3's one-hot (B, 2) -> flag
-        g = torch.cat(
-            [torch.log1p(goal[:, :1]), torch.cos(goal[:, 1:2]), torch.sin(goal[:, 1:2]), localized], 1
-        )
+        polar = [obs["goal_rel"], obs["waypoint"]] if self.guided else [obs["goal_rel"]]
+        parts = [torch.cat([torch.log1p(p[:, :1]), torch.cos(p[:, 1:2]), torch.sin(p[:, 1:2])], 1)
+                 for p in polar]  # fmt: skip
+        g = torch.cat([*parts, localized], 1)
         grid = torch.cat([obs["map"], obs["path"]], 1) if self.guided else obs["map"]
         return torch.cat([self.map_fc(self.cnn(grid)), self.goal_fc(g)], dim=1)
 

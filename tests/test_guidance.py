@@ -26,14 +26,16 @@ def test_path_channel_draws_the_path_ahead_and_around_an_obstacle():
     fused = LogOddsMap(spec)
     channel = PathChannel(size=33, resolution=0.1, robot_radius=0.2)
     pose = np.array([0.0, 0.0, np.pi / 2])
-    img = channel(_obs(pose, (0.0, 1.0)), fused)[0]
+    out = channel(_obs(pose, (0.0, 1.0)), fused)
+    img = out["path"][0]
     assert img.shape == (33, 33)
+    np.testing.assert_allclose(out["waypoint"], (0.5, 0.0), atol=0.03)  # 0.5 m ahead on the path
     rows, cols = np.nonzero(img == PATH_VALUE)
     assert set(cols) == {16} and rows.min() >= 6 and rows.max() == 16
     assert img[6, 16] == GOAL_VALUE and (img == GOAL_VALUE).sum() == 9
     wall = (np.abs(spec.centres()[..., 1] - 0.5) < 0.05) & (np.abs(spec.centres()[..., 0]) < 0.6)
     fused.logodds[wall] = 3.0
-    img = channel(_obs(pose, (0.0, 1.0)), fused)[0]  # newly occupied cells on the path: replans
+    img = channel(_obs(pose, (0.0, 1.0)), fused)["path"][0]  # newly occupied cells on the path: replans
     rows, cols = np.nonzero(img == PATH_VALUE)
     assert np.abs(cols - 16).max() >= 6  # around the 1.2 m wide wall
     assert img[6, 16] == GOAL_VALUE
