@@ -50,11 +50,13 @@ PERCEPTION_IMAGE_SIZE = (160, 120)
 #: Episodes of the perception recipe: shorter than evaluation's 500 steps (10 m goals need ~60).
 PERCEPTION_ENV_KWARGS: dict[str, Any] = {"image_size": PERCEPTION_IMAGE_SIZE, "max_steps": 150}
 DEFAULT_PPO_KWARGS: dict[str, Any] = {"n_steps": 128, "batch_size": 64, "n_epochs": 4, "learning_rate": 3e-4}
-#: PPO settings of the perception recipe.
+#: PPO settings of the perception recipe: 80 gradient steps per 512 env steps (4 epochs of 128 made
+#: 16 and learned slowly: guided success 0.16 at 36k steps at 2 m goals; an update costs ~0.4 ms per
+#: sample and epoch against ~6 ms per env step).
 RECIPE_PPO_KWARGS: dict[str, Any] = {
     "n_steps": 256,
-    "batch_size": 128,
-    "n_epochs": 4,
+    "batch_size": 64,
+    "n_epochs": 10,
     "learning_rate": 3e-4,
     "ent_coef": 0.01,
     "gamma": 0.99,
