@@ -36,6 +36,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from numpy.typing import NDArray
 
 from vgpnav_env.agents.guidance import GUIDANCE
 from vgpnav_env.arguments import positive_int_arg, seed_arg
@@ -214,6 +215,46 @@ def start_without_stopping(model) -> None:
         model.policy.action_net.bias[int(Action.STOP)] += STOP_LOGIT
 
 
+def demonstrations(
+    config: dict[str, Any], steps: int, seed: int = 0
+) -> tuple[dict[str, NDArray], NDArray[np.int64]]:
+    """(observations stacked per key, actions) of the A* agent (``PerceptionAStar``: the same
+    estimated pose and fused map the policy has, nothing privileged) acting for ``steps`` steps in
+    the training env ``config`` (its scenes in turn, the env's full goal range), the observations as
+    the policy sees them (with the guidance keys when ``config`` has guidance)."""
+    from vgpnav_env.agents.guidance import path_channel_for
+    from vgpnav_env.eval.navigation import PerceptionAStar
+    from vgpnav_env.make import make_env
+
+    scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
+    envs = [make_env({**config, "scene": s, "guidance": None}) for s in scenes]
+    observations: dict[str, list] = {}
+    actions: list[int] = []
+    episode = 0
+    try:
+        while len(actions) < steps:
+            env = envs[episode % len(envs)]
+            agent = PerceptionAStar(env)
+            channel = path_channel_for(env, env.observation_space) if config.get("guidance") else None
+            obs, _ = env.reset(seed=seed + episode)
+            done = False
+            while not done and len(actions) < steps:
+                seen = {**obs, **channel(obs, env.get_wrapper_attr("fused_map"))} if channel else obs
+                for key, value in seen.items():
+                    observations.setdefault(key, []).append(
+                        np.asarray(value).reshape(-1) if key == "localized" else value
+                    )
+                action = int(agent.act(obs))
+                actions.append(action)
+                obs, _, terminated, truncated, _ = env.step(action)
+                done = terminated or truncated
+            episode += 1
+    finally:
+        for env in envs:
+            env.close()
+    return {k: np.stack(v) for k, v in observations.items()}, np.asarray(actions)
+
+
 def train_ppo(
     scene: str | list[str],
     steps: int,
@@ -228,15 +269,23 @@ def train_ppo(
     database_dir: str | Path | None = None,
     guidance: str | None = None,
     curriculum: bool = True,
+    pretrain: int = 0,
 ) -> Path:
     """Train (or resume) PPO for ``steps`` total env steps on ``scene`` (one source or several);
     returns the final model path. With a ``perception`` the recipe of the module docstring
-    (``guidance``: the planner's path channel; ``curriculum``: the goal-distance curriculum)."""
+    (``guidance``: the planner's path channel; ``curriculum``: the goal-distance curriculum;
+    ``pretrain``: env steps of A* demonstrations the new policy is first cloned from)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import configure
 
-    from vgpnav_env.agents.ppo_policy import GoalCurriculum, NavigationExtractor, SuccessLogger, single_thread
+    from vgpnav_env.agents.ppo_policy import (
+        GoalCurriculum,
+        NavigationExtractor,
+        SuccessLogger,
+        behaviour_clone,
+        single_thread,
+    )
     from vgpnav_env.scenes import list_layouts
 
     if steps <= 0:
@@ -255,6 +304,7 @@ def train_ppo(
         "env": train_config(scene, perception, env_kwargs, database_dir, guidance),
         "seed": seed,
         "curriculum": bool(curriculum and perception is not None),
+        "pretrain": int(pretrain),
     }
     if saved is None:
         (out / CONFIG_FILE).write_text(json.dumps(run_config, indent=2) + "\n")
@@ -277,6 +327,10 @@ def train_ppo(
             model = PPO("MultiInputPolicy", venv, seed=seed, device="cpu", verbose=0, **ppo)
             if recipe:
                 start_without_stopping(model)
+            if pretrain > 0:
+                obs, actions = demonstrations(config, pretrain, seed)
+                loss = behaviour_clone(model, obs, actions)
+                logger.info("cloned %d A* steps: final loss %.3f", len(actions), loss)
         model.set_logger(configure(str(out / "tb"), ["tensorboard", "csv"]))
         remaining = steps - model.num_timesteps
         if remaining > 0:
@@ -368,6 +422,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_false",
         help="sample goals at every distance from the start (default: goal-distance curriculum)",
     )
+    parser.add_argument(
+        "--pretrain",
+        type=int,
+        default=0,
+        help="clone the new policy first from this many env steps of the A* agent on the same "
+        "perception (warm start; default 0: none)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
     parser.add_argument(
         "--database",
@@ -389,6 +450,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(
             "PPO trains with --perception model, classical or simulated; learned is for vgpnav eval"
         )
+    if args.pretrain < 0 or (args.pretrain and args.perception is None):
+        raise ValueError("--pretrain needs --perception and a non-negative number of steps")
     if args.guidance is not None and args.perception is None:
         raise ValueError("--guidance needs --perception (it plans on the estimated map)")
     if args.database is not None and len(args.scene) > 1:
@@ -405,6 +468,7 @@ def run(args: argparse.Namespace) -> int:
         database_dir=args.database,
         guidance=args.guidance,
         curriculum=args.curriculum,
+        pretrain=args.pretrain,
     )
     if args.perception is not None:
         print(f"learning curve: {plot_learning_curve(args.out)}")

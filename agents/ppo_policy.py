@@ -119,3 +119,32 @@ class GoalCurriculum(BaseCallback):
 
     def _on_rollout_end(self) -> None:
         self.logger.record("curriculum/max_geodesic", self.limit)
+
+
+def behaviour_clone(
+    model,
+    observations: dict[str, np.ndarray],
+    actions: np.ndarray,
+    epochs: int = 8,
+    batch: int = 128,
+    lr: float = 1e-3,
+) -> float:
+    """Fit ``model``'s policy (an SB3 PPO) to demonstrated ``actions`` by maximum likelihood (the
+    value head is left to PPO); returns the last epoch's mean negative log-likelihood."""
+    policy = model.policy
+    optimizer = torch.optim.Adam(policy.parameters(), lr=lr)
+    obs, _ = policy.obs_to_tensor(observations)
+    acts = torch.as_tensor(actions, dtype=torch.long)
+    generator = torch.Generator().manual_seed(0)
+    loss_value = float("nan")
+    for _ in range(epochs):
+        losses = []
+        for idx in torch.randperm(len(acts), generator=generator).split(batch):
+            _, log_prob, _ = policy.evaluate_actions({k: v[idx] for k, v in obs.items()}, acts[idx])
+            loss = -log_prob.mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.item())
+        loss_value = float(np.mean(losses))
+    return loss_value
