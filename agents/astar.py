@@ -9,8 +9,9 @@ turn step -- ``reverse_turn`` turn steps to undo its last turn while two steps a
 (hysteresis: with 15 degree turns a path between two headings otherwise makes it zigzag left,
 forward, right, forward) -- and
 otherwise drives forward; it stops when the (estimated) goal distance is below ``goal_radius``.
-It replans when the map, the goal or the grid changes, when it strays from the path, and when a
-forward action made no progress (it then marks the cell ahead as an obstacle).
+It replans when the goal or the grid changes, when the map changes so that the rest of the path is
+no longer traversable (or ``replan_every`` steps after the last plan), when it strays from the
+path, and when a forward action made no progress (it then marks the cell ahead as an obstacle).
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ class AStarAgent:
         off_path_distance: float = 0.5,
         reverse_turn: float = 0.9,
         min_waypoint: float = 0.3,
+        replan_every: int = 10,
     ) -> None:
         if robot_radius <= 0 or goal_radius <= 0 or lookahead <= 0 or forward_step <= 0:
             raise ValueError("robot_radius, goal_radius, lookahead and forward_step must be positive metres")
@@ -79,6 +81,9 @@ class AStarAgent:
                              f"{reverse_turn}, {min_waypoint}")  # fmt: skip
         self.reverse_turn = float(reverse_turn)
         self.min_waypoint = float(min_waypoint)
+        if replan_every < 1:
+            raise ValueError(f"replan_every must be >= 1 step, got {replan_every}")
+        self.replan_every = int(replan_every)
         self.reset()
 
     def reset(self) -> None:
@@ -95,6 +100,7 @@ class AStarAgent:
         self._last_action: Action | None = None
         self._last_pose: NDArray[np.float64] | None = None
         self._last_turn: Action | None = None
+        self._since_plan = 0
 
     # -- planning --------------------------------------------------------------------------
     def traversable(
@@ -227,6 +233,12 @@ class AStarAgent:
         self._last_action, self._last_pose = action, pose
         return action
 
+    def _path_clear(self, free: NDArray[np.bool_], xy: NDArray[np.float64]) -> bool:
+        """Whether the rest of the current path (from the point closest to ``xy``) stays on ``free``."""
+        rest = self._dense[int(np.argmin(np.linalg.norm(self._dense - xy, axis=1))) :]
+        cells = self._spec.world_to_cell(rest)
+        return bool(np.all(self._spec.contains(cells)) and np.all(free[cells[:, 0], cells[:, 1]]))
+
     def _decide(
         self, pose: NDArray, obstacles: NDArray[np.bool_], spec: GridSpec, goal: NDArray, blocked: bool
     ) -> Action:
@@ -241,9 +253,16 @@ class AStarAgent:
             self._dense is not None
             and np.min(np.linalg.norm(self._dense - pose[:2], axis=1)) > self.off_path_distance
         )
+        self._since_plan += 1
+        if changed and not (blocked or strayed or self.path is None or key != self._plan_key):
+            # A fused map changes on every frame: keep the path while it stays clear (replanning
+            # each step let the plan, hence the heading, flip between near-equal routes).
+            free = self.traversable(obstacles, spec, pose)
+            if self._since_plan < self.replan_every and self._path_clear(free, pose[:2]):
+                self._free, self._plan_map, changed = free, obstacles.copy(), False
         if changed or blocked or strayed or self.path is None:
             self.plan(pose, obstacles, spec, goal)
-            self._plan_key, self._plan_map = key, obstacles.copy()
+            self._plan_key, self._plan_map, self._since_plan = key, obstacles.copy(), 0
         if self.path is None:  # off the map: head for the goal, turning away after a bump
             return Action.TURN_LEFT if blocked else self._turn_or_forward(pose, goal)
         if np.linalg.norm(self.path[-1] - pose[:2]) < 0.5 * self.forward_step:

@@ -77,9 +77,12 @@ class PerceptionAStar:
 
     Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing) and
     ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles)
-    and ``pose_state``. Until the first localized frame of an episode it turns in place (there is
-    no pose to plan from), one full turn at a time with ``explore_steps`` forward steps between
-    them (a new viewpoint). When the pose becomes uncertain -- its position standard deviation
+    and ``pose_state``. Until the first localized frame of an episode (there is no pose to plan
+    from) it explores: one full turn in place, then straight ahead, turning ``bounce_turns`` to the
+    left whenever a forward step was blocked (the pose state's ``stalled``: no change in the
+    pixels), with another full turn after every ``explore_steps`` steps moved (a
+    new viewpoint each time; it used to turn and bump into the same wall for the whole episode).
+    When the pose becomes uncertain -- its position standard deviation
     (the pose state's covariance, largest axis) above ``max_sigma`` metres, or without a
     covariance (paper mode) after ``max_blind_steps`` dead-reckoned steps -- it turns in place for
     at most one full turn to look for a view that localizes, then goes on by dead reckoning.
@@ -90,7 +93,8 @@ class PerceptionAStar:
         env: gym.Env,
         max_blind_steps: int = 8,
         max_sigma: float = 0.3,
-        explore_steps: int = 3,
+        explore_steps: int = 8,
+        bounce_turns: int = 12,
         **agent_kwargs: Any,
     ) -> None:
         self.env = env
@@ -102,6 +106,7 @@ class PerceptionAStar:
         self.max_blind_steps = int(max_blind_steps)
         self.max_sigma = float(max_sigma)
         self.explore_steps = int(explore_steps)
+        self.bounce_turns = int(bounce_turns)
         self.turns_per_circle = int(np.ceil(2.0 * np.pi / base.turn_step))
         self.reset()
 
@@ -110,6 +115,9 @@ class PerceptionAStar:
         self.seen = False  # localized at least once this episode
         self.blind = 0  # consecutive frames without localization
         self.searched = 0  # look-around turns in the current blind spell
+        self._turns_left = self.turns_per_circle  # exploration before the first fix
+        self._moved = 0  # forward steps moved since the last full turn of the exploration
+        self._last: Action | None = None  # the last exploration action
 
     def _uncertain(self) -> bool:
         """Whether the pose is too uncertain to drive on (see the class docstring)."""
@@ -118,15 +126,35 @@ class PerceptionAStar:
             return self.blind > self.max_blind_steps
         return bool(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()) > self.max_sigma)
 
+    def _blocked(self) -> bool:
+        """Whether the last step was blocked: the pose state saw no change in the pixels (a
+        wrapper without one, e.g. the model perception, moves its pose estimate: never)."""
+        try:
+            return bool(self.env.get_wrapper_attr("pose_state").stalled)
+        except AttributeError:
+            return False
+
+    def _explore(self) -> Action:
+        """The exploration before the first fix (see the class docstring)."""
+        if self._last == Action.FORWARD:
+            if self._blocked():
+                self._turns_left = self.bounce_turns
+            else:
+                self._moved += 1
+        if self._moved >= self.explore_steps:
+            self._moved, self._turns_left = 0, self.turns_per_circle
+        action = Action.TURN_LEFT if self._turns_left > 0 else Action.FORWARD
+        self._turns_left -= int(action == Action.TURN_LEFT)
+        self._last = action
+        return action
+
     def act(self, obs: dict[str, Any]) -> Action:
         if int(np.asarray(obs["localized"]).reshape(-1)[0]):
             self.seen, self.blind, self.searched = True, 0, 0
         else:
             self.blind += 1
-        if not self.seen:  # no pose yet: full turns in place, a few steps ahead between them
-            phase = self.searched % (self.turns_per_circle + self.explore_steps)
-            self.searched += 1
-            return Action.TURN_LEFT if phase < self.turns_per_circle else Action.FORWARD
+        if not self.seen:  # no pose yet: explore for a view that localizes
+            return self._explore()
         if self.searched < self.turns_per_circle and self._uncertain():
             self.searched += 1
             return Action.TURN_LEFT

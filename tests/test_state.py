@@ -46,6 +46,17 @@ def test_dead_reckoning_moves_by_the_motion_model_unless_the_image_stalls():
     np.testing.assert_allclose(s.estimate, (0.25, 0.0, np.radians(15)))
 
 
+@pytest.mark.parametrize("kind", [OdometryState, EKFState])
+def test_stalled_reports_a_blocked_step_also_before_the_first_fix(kind):
+    s = kind(LOW, HIGH)
+    s.reset(IMAGES[0], fallback=(1.0, 2.0, 0.0))
+    assert not s.stalled
+    s.predict(Action.FORWARD, IMAGES[0])  # no fix yet: the estimate stays the placeholder
+    assert s.stalled
+    s.predict(Action.FORWARD, IMAGES[1])
+    assert not s.stalled
+
+
 def test_gate_is_centred_on_the_prediction_and_grows_with_motion_since_the_fix():
     s = state()
     s.correct(np.array([0.0, 0.0, 0.0]))

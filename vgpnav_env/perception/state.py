@@ -100,6 +100,11 @@ class PoseState(Protocol):
         """What the last :meth:`correct` did with its measurement (:data:`FIX_OUTCOMES`)."""
 
     @property
+    def stalled(self) -> bool:
+        """Whether the image of the last :meth:`predict` did not change (after a forward step: it
+        was blocked), also before the first fix, when :attr:`estimate` does not move."""
+
+    @property
     def covariance(self) -> NDArray[np.float64] | None:
         """The estimate's 3x3 covariance over (x, y, yaw) (m^2, m rad, rad^2); None: not kept."""
 
@@ -128,15 +133,17 @@ class _StallDetector:
             raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {threshold}")
         self.threshold = float(threshold)
         self._thumbnail: NDArray[np.float32] | None = None
+        self.last = False  # the last result of stalled()
 
     def reset(self, rgb: NDArray[np.uint8]) -> None:
         self._thumbnail = _thumbnail(rgb)
+        self.last = False
 
     def stalled(self, rgb: NDArray[np.uint8]) -> bool:
         thumbnail = _thumbnail(rgb)
-        stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.threshold
+        self.last = float(np.abs(thumbnail - self._thumbnail).mean()) < self.threshold
         self._thumbnail = thumbnail
-        return stalled
+        return self.last
 
 
 def _effective_action(action: int | NDArray, stalled: bool) -> Action:
@@ -188,6 +195,10 @@ class OdometryState:
     @property
     def fix(self) -> str:
         return "accepted" if self._localized else "none"
+
+    @property
+    def stalled(self) -> bool:
+        return self._stall.last
 
     @property
     def covariance(self) -> None:
@@ -353,6 +364,10 @@ class EKFState:
     @property
     def fix(self) -> str:
         return self._fix
+
+    @property
+    def stalled(self) -> bool:
+        return self._stall.last
 
     def reset(self, rgb: NDArray[np.uint8], fallback: ArrayLike) -> None:
         self._stall.reset(rgb)
