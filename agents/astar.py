@@ -63,6 +63,7 @@ class AStarAgent:
         reverse_turn: float = 0.9,
         min_waypoint: float = 0.3,
         replan_every: int = 10,
+        contact_arc_deg: float = 45.0,
     ) -> None:
         if robot_radius <= 0 or goal_radius <= 0 or lookahead <= 0 or forward_step <= 0:
             raise ValueError("robot_radius, goal_radius, lookahead and forward_step must be positive metres")
@@ -84,6 +85,10 @@ class AStarAgent:
         if replan_every < 1:
             raise ValueError(f"replan_every must be >= 1 step, got {replan_every}")
         self.replan_every = int(replan_every)
+        # Bearings from the heading of the contact points a blocked forward step marks on the
+        # robot's front: the contact lies somewhere on the front half (one point straight ahead let
+        # it bump again beside, along a wall the map does not hold).
+        self.contact_arc = np.radians(np.unique([-contact_arc_deg, 0.0, contact_arc_deg]))
         self.reset()
 
     def reset(self) -> None:
@@ -104,15 +109,22 @@ class AStarAgent:
 
     # -- planning --------------------------------------------------------------------------
     def traversable(
-        self, obstacles: NDArray[np.bool_], spec: GridSpec, pose: ArrayLike, inflation: float | None = None
+        self,
+        obstacles: NDArray[np.bool_],
+        spec: GridSpec,
+        pose: ArrayLike,
+        inflation: float | None = None,
+        contacts: list[NDArray[np.float64]] | None = None,
     ) -> NDArray[np.bool_]:
         """Cells the robot centre may visit: not within ``inflation`` (default: robot radius +
-        margin) of an obstacle or a blocked cell, and ``navigable`` if the agent was given that
-        (known contact-free cells, e.g. the ground truth's). The robot's own footprint is always
-        traversable (obstacles or blocked cells under the robot are errors), so a plan can start."""
+        margin) of an obstacle or a contact point (default: all of ``blocked_points``), and
+        ``navigable`` if the agent was given that (known contact-free cells, e.g. the ground
+        truth's). The robot's own footprint is always traversable (obstacles or blocked cells under
+        the robot are errors), so a plan can start."""
         occ = obstacles.copy()
-        if self.blocked_points:
-            cells = spec.world_to_cell(np.asarray(self.blocked_points))
+        contacts = self.blocked_points if contacts is None else contacts
+        if contacts:
+            cells = spec.world_to_cell(np.asarray(contacts))
             cells = cells[spec.contains(cells)]
             occ[cells[:, 0], cells[:, 1]] = True
         near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
@@ -141,18 +153,24 @@ class AStarAgent:
         """Recompute ``self.path`` (world (N, 2) waypoints, None if no path exists).
 
         Falls back to a tighter inflation (half the robot radius), then to the blocked cells
-        alone (fully optimistic) when the map leaves no path, e.g. after mapping errors.
+        alone (fully optimistic) when the map leaves no path, e.g. after mapping errors; when the
+        contacts close every way (wedged between hulls), to the last contact alone, then to none.
         """
         pose = np.asarray(pose, float)
         goal = np.asarray(goal, float)[:2]
         self.replans += 1
+        tight = 0.5 * self.robot_radius
+        empty = np.zeros_like(obstacles)
+        last = self.blocked_points[-len(self.contact_arc) :]
         attempts = (
-            (obstacles, self.inflation),
-            (obstacles, 0.5 * self.robot_radius),
-            (np.zeros_like(obstacles), self.inflation),
+            (obstacles, self.inflation, None),
+            (obstacles, tight, None),
+            (empty, self.inflation, None),
+            (empty, tight, last),
+            (empty, tight, []),
         )
-        for grid, inflation in attempts:
-            free = self.traversable(grid, spec, pose, inflation)
+        for grid, inflation, contacts in attempts:
+            free = self.traversable(grid, spec, pose, inflation, contacts)
             target = self._reachable_target(free, spec, goal)
             try:
                 path = shortest_path(free, spec, pose[:2], target)
@@ -217,17 +235,19 @@ class AStarAgent:
             raise ValueError(
                 f"obstacle grid shape {obstacles.shape} does not match the grid spec {spec.shape}"
             )
-        # A blocked cell the robot now stands on was a wrong guess of where the contact was.
+        # A contact point the robot's centre now stands near was a wrong guess of where the contact
+        # was (a true one stays a robot radius away; half of it leaves room for pose noise: hugging
+        # a wall used to drop the contacts along it, and the robot bumped along it for good).
         self.blocked_points = [
-            p for p in self.blocked_points if np.linalg.norm(p - pose[:2]) > self.robot_radius
+            p for p in self.blocked_points if np.linalg.norm(p - pose[:2]) > 0.5 * self.robot_radius
         ]
         blocked = False
         if self._last_action == Action.FORWARD and self._last_pose is not None:
             moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
             if moved < self.min_progress * self.forward_step:
                 ahead = self.robot_radius + 0.5 * spec.resolution
-                yaw = self._last_pose[2]
-                self.blocked_points.append(pose[:2] + ahead * np.array([np.cos(yaw), np.sin(yaw)]))
+                yaw = self._last_pose[2] + self.contact_arc
+                self.blocked_points.extend(pose[:2] + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=1))
                 blocked = True
         action = self._decide(pose, obstacles, spec, goal, blocked)
         self._last_action, self._last_pose = action, pose

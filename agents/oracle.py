@@ -30,6 +30,7 @@ class OracleAgent:
         agent_kwargs.setdefault("forward_step", base.forward_step)
         agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
         agent_kwargs.setdefault("navigable", gt.navigable)
+        agent_kwargs.setdefault("contact_arc_deg", 0.0)  # its map holds every hull: a contact is a graze
         self.base = base
         self.spec = gt.spec
         self.obstacles = ~np.asarray(gt.free, bool)
