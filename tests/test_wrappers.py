@@ -319,3 +319,21 @@ def test_wrapper_rejects_an_unknown_perception_mode(database):
             database=database,
             perception_mode="dream",
         )
+
+
+def test_wrapper_without_database_dir_asks_for_the_command_lines_build(monkeypatch):
+    """The default build's parameters match those of ``vgpnav build`` / ``eval navigation``
+    (fovy 60.0, not degrees(radians(60)) = 59.99999999999999, which rebuilt the scene)."""
+    from vgpnav_env import wrappers
+    from vgpnav_env.robot import FOVY_DEG
+
+    asked = []
+
+    def fake_build(scene, size, texture, fovy_deg, seed):
+        asked.append((scene, size, texture, fovy_deg))
+        raise RuntimeError("no build here")
+
+    monkeypatch.setattr(wrappers, "scene_database_dir", fake_build)
+    with pytest.raises(RuntimeError, match="no build here"):
+        VGPNavObservation(gym.make(ENV_ID, scene="home", image_size=HOME_SIZE))
+    assert asked == [("home", HOME_SIZE, "realistic", FOVY_DEG)]

@@ -226,7 +226,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                         "the env was made from a Scene object: pass database_dir= (a build of that scene)"
                     )
                 size = (base.camera.width, base.camera.height)
-                fovy = float(np.degrees(base.camera.fovy))
+                # Rounded: degrees(radians(60)) is 59.99999999999999, and a build made by the
+                # command line (60.0) did not match: every wrapper made without database_dir rebuilt.
+                fovy = round(float(np.degrees(base.camera.fovy)), 6)
                 database_dir = scene_database_dir(base.scene_source, size, base.texture, fovy, build_seed)
             database = open_database(database_dir, database_config)
         config = perception_config or PerceptionConfig(camera_height=base.camera_height)
