@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from vgpnav_env.perception.verify import (
     check_height,
     check_scale,
     epipolar_support,
+    off_plane_matches,
     verify_pose,
 )
 
@@ -152,3 +155,63 @@ def test_epipolar_support_counts_the_matches_a_pose_explains() -> None:
     assert (epipolar_support(turned, T_wi, out.matches, CAMERA, 2.0) < 0.2 * out.n_matches).all()
     with pytest.raises(ValueError, match="match arrays"):
         epipolar_support(T_a, T_wi[:2], out.matches, CAMERA, 2.0)
+
+
+def _wallpaper_frame():
+    """(true T_wq, the same pose in room B, room A's output, room B's output): room A's references
+    match the query on two walls and the floor; room B's (the same cameras moved by SHIFT) match
+    it only on one wall whose texture room B repeats, so those matches fit the pose in room B."""
+    rng = np.random.default_rng(1)
+    points = _room_points(rng)
+    wall = np.c_[np.full(2400, 4.0), rng.uniform(0, 4, 2400), rng.uniform(0, 2.5, 2400)]  # the x = 4 wall
+    T_q = camera_pose([1.0, 1.2, 1.2], np.deg2rad(45.0), np.deg2rad(20.0))
+    refs = [camera_pose([x, y, 1.5], np.deg2rad(yaw), np.deg2rad(25.0)) for x, y, yaw in
+            [(0.6, 1.5, 40.0), (1.5, 0.5, 55.0), (1.2, 1.9, 35.0)]]  # fmt: skip
+
+    def output(matches: list[np.ndarray]) -> BackboneOutput:
+        k = len(matches)
+        return BackboneOutput(
+            np.tile(np.eye(4), (k, 1, 1)), np.full(k, 0.5), np.array([len(m) for m in matches]),
+            np.zeros((2, 2), np.float32), np.zeros((2, 2), np.float32), "test", "none", matches=matches,
+        )  # fmt: skip
+
+    T_b = T_q.copy()
+    T_b[:3, 3] += SHIFT
+    out_a = output([_matches(T_q, T, points, rng) for T in refs])
+    out_b = output([_matches(T_q, T, wall, rng) for T in refs])
+    return T_q, T_b, np.array(refs), out_a, out_b
+
+
+def test_off_plane_support_rejects_a_place_that_only_repeats_a_walls_texture() -> None:
+    T_a, T_b, T_wi_a, out_a, out_b = _wallpaper_frame()
+    T_wi_b = T_wi_a.copy()
+    T_wi_b[:, :3, 3] += SHIFT
+    counting_all, plane = VerifyConfig(plane_threshold_px=None), VerifyConfig(plane_threshold_px=2.0)
+    # Counting every match, room B's wall texture confirms the wrong room as well as room A does.
+    assert verify_pose(T_b, T_wi_b, out_b, CAMERA, counting_all).ok
+    # Off the dominant plane nothing is left of room B's matches: unverified.
+    flat = off_plane_matches(out_b, 2.0)
+    assert all(len(m) <= 0.05 * n for m, n in zip(flat.matches, out_b.n_matches, strict=True))
+    wrong = verify_pose(T_b, T_wi_b, out_b, CAMERA, plane)
+    assert not wrong.ok and wrong.reason == "unverified" and "dominant planes" in wrong.detail
+    # Room A's references see two walls and the floor: matches stay off the dominant plane.
+    kept = np.array([len(m) for m in off_plane_matches(out_a, 2.0).matches])
+    assert ((kept >= 0.2 * out_a.n_matches) & (kept <= 0.8 * out_a.n_matches)).all()
+    right = verify_pose(T_a, T_wi_a, out_a, CAMERA, plane)
+    assert right.ok and right.n_supporting == 3 and right.confidence > 0.8
+    # Both rooms' references: room B's wall makes a rival as strong as the pose (ambiguous when
+    # every match counts); off the plane it is no place, and the right room is kept.
+    both = replace(out_a, T_qi=np.tile(np.eye(4), (6, 1, 1)), confidence=np.full(6, 0.5),
+                   n_matches=np.r_[out_a.n_matches, out_b.n_matches], matches=out_a.matches + out_b.matches,
+                   scale_valid=None)  # fmt: skip
+    T_wi = np.concatenate([T_wi_a, T_wi_b])
+    assert verify_pose(T_a, T_wi, both, CAMERA, counting_all, rivals=[T_b]).reason == "ambiguous"
+    kept_right = verify_pose(T_a, T_wi, both, CAMERA, plane, rivals=[T_b])
+    assert kept_right.ok and kept_right.rival_strength == 0 and kept_right.support[:3].all()
+    # A pair under 8 matches keeps none; an output without matches is returned unchanged.
+    few = off_plane_matches(replace(out_a, matches=[m[:7] for m in out_a.matches]), 2.0)
+    assert all(len(m) == 0 for m in few.matches)
+    no_matches = replace(out_a, matches=None)
+    assert off_plane_matches(no_matches, 2.0) is no_matches
+    with pytest.raises(ValueError, match="plane_threshold_px"):
+        VerifyConfig(plane_threshold_px=0.0)
