@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -43,11 +44,12 @@ from vgpnav_env.geometry import camera_yaw_pitch, rotation_angle, wrap_angle
 from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.motion_averaging import AVERAGING_METHODS
+from vgpnav_env.perception.odometry import VisualOdometry, fuse_motion
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
 from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, RetrievalConfig, nearby_cameras
 from vgpnav_env.perception.scale_recovery import GroundAnchor
-from vgpnav_env.perception.state import EKFConfig, EKFState
-from vgpnav_env.robot import FORWARD_STEP, TURN_STEP_DEG, base_pose, camera_T_wc
+from vgpnav_env.perception.state import EKFState
+from vgpnav_env.robot import base_pose, camera_T_wc
 from vgpnav_env.runs import Build, load_build, load_run_depth, read_build_summary, read_run_meta
 
 logger = logging.getLogger(__name__)
@@ -227,7 +229,8 @@ class FrameRecord:
     ``source``: where the references came from (``tracking`` around the predicted pose, or
     ``global`` retrieval). Temporal mode only: ``fix``, what the EKF did with the frame's pose
     (:data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), and ``estimate_error_m``, the horizontal
-    error of the EKF's estimate after the frame (nan before its first estimate).
+    error of the EKF's estimate after the frame (nan before its first estimate), and
+    ``visual_odometry``, whether visual odometry refined the motion into the frame.
     """
 
     frame: int
@@ -253,6 +256,7 @@ class FrameRecord:
     source: str = "global"
     fix: str = ""
     estimate_error_m: float = float("nan")
+    visual_odometry: bool = False
 
     @property
     def gross(self) -> bool:
@@ -276,7 +280,10 @@ class QueryRun:
     pipeline's own; the camera height is calibrated on the first frame, see the module
     docstring); ``n_queries`` evenly spaced frames (0 / None = all); ``seed``: the backbone's noise,
     the Acc / Comp subsampling and the odometry noise; ``mode``: a
-    :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name (:func:`perceive_queries`).
+    :data:`~vgpnav_env.perception.pipeline.PERCEPTION_MODES` name (:func:`perceive_queries`);
+    ``visual_odometry`` (temporal mode): refine the wheel odometry by frame-to-frame visual
+    odometry (:mod:`vgpnav_env.perception.odometry`; on home's 184 query frames the EKF's mean
+    error 0.023 -> 0.021 m, p95 0.051 -> 0.047 m, for 0.012 CPU-s per frame).
     """
 
     build_dir: Path
@@ -286,6 +293,7 @@ class QueryRun:
     n_queries: int | None = 50
     seed: int = 0
     mode: str = "paper"
+    visual_odometry: bool = True
 
     def __post_init__(self) -> None:
         from vgpnav_env.perception.pipeline import PERCEPTION_MODES
@@ -449,29 +457,28 @@ def _frames_task(state: QueryWorker, item: tuple[_Start, list[int], float, int])
 
 
 def odometry(
-    previous: NDArray[np.float64], pose: NDArray[np.float64], config: EKFConfig, rng: np.random.Generator
+    previous: NDArray[np.float64], pose: NDArray[np.float64], ekf: EKFState, rng: np.random.Generator
 ) -> NDArray[np.float64]:
     """Simulated wheel odometry from the planar pose ``previous`` to ``pose`` (x, y, yaw): the true
     motion (forward m, left m, yaw rad) in the robot frame of ``previous`` plus Gaussian noise of
-    ``config``'s per-step sigmas (the noise :meth:`EKFState.predict_odometry` models)."""
+    the covariance ``ekf`` models (:meth:`EKFState.odometry_covariance`)."""
     c, s = np.cos(previous[2]), np.sin(previous[2])
     dx, dy = pose[:2] - previous[:2]
     motion = np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(pose[2] - previous[2])])
-    steps = np.hypot(*motion[:2]) / FORWARD_STEP
-    turns = abs(motion[2]) / np.radians(TURN_STEP_DEG)
-    sigma = np.sqrt([config.forward_sigma**2 * steps, config.lateral_sigma**2 * steps,
-                     np.radians(config.turn_sigma_deg) ** 2 * turns])  # fmt: skip
+    sigma = np.sqrt(np.diag(ekf.odometry_covariance(motion)))
     return motion + rng.normal(0.0, 1.0, 3) * sigma
 
 
 def _temporal_task(
-    state: QueryWorker, item: tuple[PerceptionConfig, list[int], float, int]
+    state: QueryWorker, item: tuple[PerceptionConfig, list[int], float, int, bool]
 ) -> list[QueryFrame]:
     """Temporal mode: every frame in order, an :class:`EKFState` carried along by simulated wheel
-    odometry (:func:`odometry`, seeded by (seed, frame)); while it is certain the perceiver tracks
+    odometry (:func:`odometry`, seeded by (seed, frame); refined by visual odometry when asked,
+    :func:`~vgpnav_env.perception.odometry.fuse_motion`); while it is certain the perceiver tracks
     (references around the predicted camera), and it takes in the perceived poses. The ground is
-    anchored on the first frame standing still, as in paper mode."""
-    config, frames, max_depth, max_points = item
+    anchored on the first frame standing still, as in paper mode. A record's ``cpu`` timing
+    includes the odometry's (``odometry_cpu``)."""
+    config, frames, max_depth, max_points, visual_odometry = item
     query = state.build.query
     T0 = query.poses[frames[0]]
     height, pitch = float(T0[2, 3]), camera_yaw_pitch(T0)[1]
@@ -485,19 +492,30 @@ def _temporal_task(
     high = np.append(truth[:, :2].max(0), np.pi) + margin
     ekf = EKFState(low, high)
     ekf.reset(query.images[frames[0]], fallback=(0.5 * (low + high))[:2].tolist() + [0.0])
+    vo = VisualOdometry(query.camera, height, pitch) if visual_odometry else None
+    if vo is not None:
+        vo.reset(query.images[frames[0]])
     out = []
     for n, i in enumerate(frames):
         note(f"frame {i}")
+        used, vo_cpu = False, time.process_time()
         if n:
             rng = np.random.default_rng([state.seed, i, 1])
-            ekf.predict_odometry(odometry(truth[n - 1], truth[n], ekf.config, rng))
+            motion = odometry(truth[n - 1], truth[n], ekf, rng)
+            visual = vo.measure(query.images[i]) if vo is not None else None
+            motion, covariance, used = fuse_motion(motion, ekf.odometry_covariance(motion), visual)
+            ekf.predict_odometry(motion, covariance)
+        vo_cpu = time.process_time() - vo_cpu
         predicted = ekf.tracking_pose()
         T_pred = None if predicted is None else camera_T_wc(predicted, height, pitch)
         frame = state.perceive(perceiver, i, max_depth, max_points, predicted=T_pred)
         result = frame.result
         ekf.correct(base_pose(result.T_wc) if result.localized else None)
         error = float(np.linalg.norm(ekf.estimate[:2] - truth[n, :2])) if ekf.has_estimate else float("nan")
-        record = replace(frame.record, fix=ekf.fix, estimate_error_m=error)
+        timings = frame.record.timings | {"cpu": frame.record.timings["cpu"] + vo_cpu, "odometry_cpu": vo_cpu}
+        record = replace(
+            frame.record, fix=ekf.fix, estimate_error_m=error, visual_odometry=used, timings=timings
+        )
         out.append(replace(frame, record=record))
     return out
 
@@ -534,7 +552,8 @@ def perceive_queries(
         setup = QuerySetup(Path(run.build_dir), run.backbone, dict(run.backbone_options), run.seed)
         first = (run.config, frames, max_depth, max_points)
         if run.mode == "temporal":  # one sequence, one task: the state is carried frame to frame
-            (done,) = workers.map(setup, _temporal_task, [first], desc="perceiving queries in order")
+            task = (*first, run.visual_odometry)
+            (done,) = workers.map(setup, _temporal_task, [task], desc="perceiving queries in order")
             return done
         (start,) = workers.map(setup, _start_task, [first], desc="ground anchor")
         rest = frames[len(start.frames) :]
@@ -699,6 +718,7 @@ def temporal_metrics(records: list[FrameRecord]) -> dict[str, Any]:
     return {
         "fixes": dict(sorted(fixes.items())),
         "tracked_rate": float(np.mean([r.source == "tracking" for r in records])),
+        "visual_odometry_rate": float(np.mean([r.visual_odometry for r in records])),
         "no_estimate_rate": float(1.0 - have.mean()),
         "estimate_mean_m": float(e.mean()) if len(e) else float("nan"),
         "estimate_median_m": float(np.median(e)) if len(e) else float("nan"),

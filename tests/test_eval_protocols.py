@@ -400,6 +400,13 @@ def test_temporal_mode_perceives_the_query_run_in_order_with_the_state_estimate(
     assert m["no_estimate_rate"] == pytest.approx(1 / 6) and m["estimate_gross_rate"] == 0.0
     assert m["tracked_rate"] >= 3 / 6, [r.source for r in records]
     assert temporal_metrics(query_records(replace(run, mode="paper"), progress=False)) == {}
+    # Visual odometry (on by default): the tiny run's consecutive frames are 1.2-2.5 m and 90-270
+    # deg apart; the one pair the two-view solver passes (frames 1-2, 50 inliers: 0.6 deg for a 90
+    # deg turn) fails the gate against the wheel odometry, so the estimates are those without it.
+    assert run.visual_odometry and m["visual_odometry_rate"] == 0.0
+    wheels = query_records(replace(run, visual_odometry=False), progress=False)
+    assert [r.estimate_error_m for r in wheels[1:]] == [r.estimate_error_m for r in records[1:]]
+    assert all(r.timings["cpu"] >= r.timings["odometry_cpu"] > 0 for r in records[1:])
     with pytest.raises(ValueError, match="paper, temporal"):
         QueryRun(build, mode="dream")
 

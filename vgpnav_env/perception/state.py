@@ -403,31 +403,35 @@ class EKFState:
         if self._candidate is not None:
             self._candidate, self._candidate_P = self._process(self._candidate, self._candidate_P, act)
 
-    def predict_odometry(self, motion: ArrayLike) -> None:
-        """Motion update by measured odometry instead of an action: ``motion`` (forward m, left m,
-        yaw rad) in the robot frame of the previous pose (e.g. wheel odometry over a query run's
-        continuous motion). The process noise is that of the equivalent number of nominal steps:
-        variance ``forward_sigma^2`` / ``lateral_sigma^2`` per ``forward_step`` of distance and
-        ``turn_sigma_deg^2`` per ``turn_step`` of rotation."""
-        d = np.asarray(motion, float)
-        if self._have_fix:
-            self._x, self._P = self._odometry(self._x, self._P, d)
-        if self._candidate is not None:
-            self._candidate, self._candidate_P = self._odometry(self._candidate, self._candidate_P, d)
-
-    def _odometry(self, x: NDArray[np.float64], P: NDArray[np.float64], d: NDArray[np.float64]):
-        cfg = self.config
-        c, s = np.cos(x[2]), np.sin(x[2])
-        R = np.array([[c, -s], [s, c]])
-        x_new = np.r_[x[:2] + R @ d[:2], wrap_angle(x[2] + d[2])]
-        F = np.eye(3)
-        F[:2, 2] = [-s * d[0] - c * d[1], c * d[0] - s * d[1]]
+    def odometry_covariance(self, motion: ArrayLike) -> NDArray[np.float64]:
+        """The 3x3 covariance of measured odometry ``motion`` (forward m, left m, yaw rad): that of
+        the equivalent number of nominal steps, variance ``forward_sigma^2`` / ``lateral_sigma^2``
+        per ``forward_step`` of distance and ``turn_sigma_deg^2`` per ``turn_step`` of rotation."""
+        cfg, d = self.config, np.asarray(motion, float)
         steps = np.hypot(d[0], d[1]) / self.forward_step
         turns = abs(d[2]) / self.turn_step
-        Q = np.zeros((3, 3))
-        Q[:2, :2] = R @ np.diag([cfg.forward_sigma**2 * steps, cfg.lateral_sigma**2 * steps]) @ R.T
-        Q[2, 2] = np.radians(cfg.turn_sigma_deg) ** 2 * turns
-        return x_new, F @ P @ F.T + Q
+        return np.diag([cfg.forward_sigma**2 * steps, cfg.lateral_sigma**2 * steps,
+                        np.radians(cfg.turn_sigma_deg) ** 2 * turns])  # fmt: skip
+
+    def predict_odometry(self, motion: ArrayLike, covariance: ArrayLike | None = None) -> None:
+        """Motion update by measured odometry instead of an action: ``motion`` (forward m, left m,
+        yaw rad) in the robot frame of the previous pose (e.g. wheel odometry over a query run's
+        continuous motion, possibly refined by visual odometry) with its 3x3 ``covariance``
+        (default :meth:`odometry_covariance`)."""
+        d = np.asarray(motion, float)
+        Q = self.odometry_covariance(d) if covariance is None else np.asarray(covariance, float)
+        if self._have_fix:
+            self._x, self._P = self._odometry(self._x, self._P, d, Q)
+        if self._candidate is not None:
+            self._candidate, self._candidate_P = self._odometry(self._candidate, self._candidate_P, d, Q)
+
+    def _odometry(self, x: NDArray[np.float64], P: NDArray[np.float64], d: NDArray[np.float64], Q_d):
+        c, s = np.cos(x[2]), np.sin(x[2])
+        G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # motion frame -> W
+        x_new = np.r_[x[:2] + G[:2, :2] @ d[:2], wrap_angle(x[2] + d[2])]
+        F = np.eye(3)
+        F[:2, 2] = [-s * d[0] - c * d[1], c * d[0] - s * d[1]]
+        return x_new, F @ P @ F.T + G @ Q_d @ G.T
 
     def gate(self) -> None:
         return None
