@@ -200,6 +200,10 @@ def train_config(
     }
 
 
+#: ``vgpnav train ppo --perception P`` defaults: planner guidance and A* demonstration steps.
+RECIPE_GUIDANCE = "path"
+RECIPE_PRETRAIN = 3000
+
 #: Initial logit offset of the stop action in the recipe (its probability starts at ~2%).
 STOP_LOGIT = -3.0
 
@@ -411,10 +415,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--guidance",
-        choices=GUIDANCE,
+        choices=(*GUIDANCE, "none"),
         default=None,
-        help="path: add the agent's own A* path on its estimated map as a map channel (hierarchical; "
-        "default: plain observation)",
+        help="path: the agent's own A* path on its estimated map as a map channel and waypoint "
+        f"(hierarchical); none: plain observation (default with --perception: {RECIPE_GUIDANCE})",
     )
     parser.add_argument(
         "--no-curriculum",
@@ -425,9 +429,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pretrain",
         type=int,
-        default=0,
+        default=None,
         help="clone the new policy first from this many env steps of the A* agent on the same "
-        "perception (warm start; default 0: none)",
+        f"perception (warm start; 0: none; default with --perception: {RECIPE_PRETRAIN})",
     )
     parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
     parser.add_argument(
@@ -450,10 +454,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(
             "PPO trains with --perception model, classical or simulated; learned is for vgpnav eval"
         )
-    if args.pretrain < 0 or (args.pretrain and args.perception is None):
+    if args.pretrain is not None and (args.pretrain < 0 or (args.pretrain and args.perception is None)):
         raise ValueError("--pretrain needs --perception and a non-negative number of steps")
-    if args.guidance is not None and args.perception is None:
+    if args.guidance not in (None, "none") and args.perception is None:
         raise ValueError("--guidance needs --perception (it plans on the estimated map)")
+    recipe = args.perception is not None
+    guidance = (RECIPE_GUIDANCE if recipe else None) if args.guidance is None else args.guidance
+    pretrain = (RECIPE_PRETRAIN if recipe else 0) if args.pretrain is None else args.pretrain
     if args.database is not None and len(args.scene) > 1:
         raise ValueError("--database names one scene's build: give one scene")
     path = train_ppo(
@@ -466,9 +473,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         checkpoint_every=args.checkpoint_every,
         database_dir=args.database,
-        guidance=args.guidance,
+        guidance=None if guidance == "none" else guidance,
         curriculum=args.curriculum,
-        pretrain=args.pretrain,
+        pretrain=pretrain,
     )
     if args.perception is not None:
         print(f"learning curve: {plot_learning_curve(args.out)}")

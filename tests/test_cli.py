@@ -209,6 +209,8 @@ BAD_INPUTS = [
     ("train ppo home --perception learned", "PPO trains with --perception model, classical or simulated"),
     ("train ppo home --perception nope", "invalid choice: 'nope'"),
     ("train ppo home --perception simulated --database MISSING", "no such build directory"),
+    ("train ppo home --guidance path", "--guidance needs --perception"),
+    ("train ppo home --perception model --pretrain -1", "--pretrain needs --perception"),
     ("eval navigation home --perception nope", "invalid choice: 'nope'"),
     ("calibrate home", "--out must be a .json file"),
     ("calibrate home --backbone nope", "invalid choice: 'nope'"),
