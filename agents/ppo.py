@@ -384,11 +384,11 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     config = load_config(run_dir)["env"]
     scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
     guided = f", {config['guidance']} guidance" if config.get("guidance") else ""
-    ax.set(
-        ylabel="mean, last 100 episodes",
-        ylim=(0, 1),
-        title=f"PPO, {config['perception']} perception{guided}, {', '.join(scenes)}",
-    )
+    run = load_config(run_dir)
+    cloned = f", cloned from {run['pretrain']} A* steps" if run.get("pretrain") else ""
+    where = scenes[0] if len(scenes) == 1 else f"{scenes[0]} + {len(scenes) - 1} scenes"
+    ax.set(ylabel="mean, last 100 episodes", ylim=(0, 1))
+    ax.set_title(f"PPO, {config['perception']} perception{guided}{cloned}, {where}", fontsize=9)
     ax_return.set(xlabel="env steps", ylabel="episode return (Habitat reward)")
     for a in (ax, ax_return):
         a.grid(alpha=0.3)
