@@ -264,3 +264,23 @@ def test_ekf_odometry_moves_the_estimate_and_grows_the_covariance_like_nominal_s
     s.predict_odometry((0.25, 0.1, 0.0))  # along the new heading, 0.1 m to its left
     c, si = np.cos(np.radians(30)), np.sin(np.radians(30))
     np.testing.assert_allclose(s.estimate[:2], (0.5 + 0.25 * c - 0.1 * si, 0.25 * si + 0.1 * c), atol=1e-12)
+
+
+def test_ekf_recaptures_a_drifted_estimate_after_kidnap_fixes_despite_its_support():
+    """A forward step blocked without the pixels showing it: the estimate runs 0.25 m ahead of the
+    robot and the right fixes fall outside the gate; within ``drift_m`` (0.5 m) three consistent
+    ones re-capture it, however many fixes it accepted before (the A* test episode of
+    tests/test_pixels_only.py)."""
+    s = started()
+    drive(s, [Action.TURN_LEFT] * 8, [np.array([0.0, 0.0, np.radians(15) * (n + 1)]) for n in range(8)])
+    yaw = np.radians(120)
+    s.predict(Action.FORWARD, IMAGES[1])  # blocked, yet the image changed: the estimate moves
+    s.correct(None)
+    outcomes = []
+    for n in range(4):
+        yaw += np.radians(15)
+        s.predict(Action.TURN_LEFT, IMAGES[2 + n % 2])
+        s.correct(np.array([0.0, 0.0, yaw]))
+        outcomes.append(s.fix)
+    assert outcomes == ["rejected", "rejected", "reset", "accepted"]
+    np.testing.assert_allclose(s.estimate[:2], (0.0, 0.0), atol=0.01)

@@ -269,7 +269,9 @@ class EKFConfig:
     away -- once they are at least ``kidnap_fixes`` and outnumber the estimate's support: the fixes
     that set it and those it accepted since, counted up to ``max_support`` (a place that looks like
     another one gives runs of consistent wrong fixes; they must outweigh the estimate's own
-    support, and an accepted fix ends the run). The first
+    support, and an accepted fix ends the run). Fixes within ``drift_m`` of the estimate need only
+    ``kidnap_fixes``: the estimate drifted (e.g. a blocked step the pixels did not show), it was not
+    carried away. The first
     estimate of an episode likewise needs ``init_fixes`` consistent fixes (a single wrong first fix
     would otherwise start the episode at the wrong place). Tracking (references around the
     prediction) while the position standard deviation (largest axis) is at most
@@ -288,13 +290,14 @@ class EKFConfig:
     kidnap_fixes: int = 3
     init_fixes: int = 2
     max_support: int = 8
+    drift_m: float = 0.5
     track_max_sigma: float = 0.5
     track_max_sigma_deg: float = 20.0
 
     def __post_init__(self) -> None:
         values = (self.forward_sigma, self.lateral_sigma, self.turn_sigma_deg, self.continuous_sigma,
                   self.continuous_sigma_deg, self.fix_sigma, self.fix_sigma_deg, self.gate_chi2,
-                  self.track_max_sigma, self.track_max_sigma_deg)  # fmt: skip
+                  self.track_max_sigma, self.track_max_sigma_deg, self.drift_m)  # fmt: skip
         if min(values) <= 0 or min(self.kidnap_fixes, self.init_fixes, self.max_support) < 1:
             raise ValueError(
                 f"EKF noise and thresholds must be positive, kidnap_fixes, init_fixes and "
@@ -482,7 +485,9 @@ class EKFState:
                 self._take(z)
             return
         self._fix = "rejected"
-        if self._candidate_count >= max(cfg.kidnap_fixes, self._support + 1):
+        drifted = float(np.linalg.norm(z[:2] - self._x[:2])) <= cfg.drift_m
+        needed = cfg.kidnap_fixes if drifted else max(cfg.kidnap_fixes, self._support + 1)
+        if self._candidate_count >= needed:
             logger.debug("kidnapping: %d consistent fixes off the estimate", self._candidate_count)
             self._take(z)
 
