@@ -230,7 +230,9 @@ def scene_report(
     settings = {"scene": scene, **run.settings(), **(run_info or {})}
     figures = {
         **figures,
-        "errors.png": error_cdf_figure(records, f"{scene}: {run.backbone}, k = {run.config.retrieval.k}"),
+        "errors.png": error_cdf_figure(
+            records, f"{scene}: {run.backbone}, k = {run.config.retrieval.k}, {run.mode} mode"
+        ),
         "worst.png": worst_frames_figure(run.build_dir, records),
         "confidence.png": confidence_figure(records, f"{scene}: confidence of the verified poses"),
     }
