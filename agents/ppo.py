@@ -17,9 +17,13 @@ The recipe, with a perception (``model``: the privileged error model fitted to c
 RL at speed; or a pixel backbone): the policy sees the egocentric occupancy crop through a small
 CNN and the goal relative to the estimated pose as (log(1 + distance), cos, sin of the bearing)
 plus the localized flag (:class:`NavigationExtractor`; the absolute pose is not used, it is scene
-specific). Termination is Habitat's (the env's): the episode ends when the agent stops, a success
-only within the success distance. The reward is Habitat's (decrease of the geodesic distance, +2.5
-on success, -0.01 per step) minus the distance left when it stops too far (:class:`EndPenalty`);
+specific), and its proprioception, the previous action and the bump sensor (``--proprioception``,
+default with a perception: :mod:`vgpnav_env.agents.proprioception`; without it a blocked step
+leaves the observation unchanged and the policy pushes into the wall until the episode ends).
+Termination is Habitat's (the env's): the episode ends when the agent stops, a success only within
+the success distance. The reward is Habitat's (decrease of the geodesic distance, +2.5 on success,
+-0.01 per step) minus the distance left when it stops too far and :data:`COLLISION_PENALTY` per
+blocked step (:class:`EndPenalty`);
 the stop action starts unlikely (:data:`STOP_LOGIT`) so that early episodes explore instead of
 stopping at once. Without a perception the policy sees the raw env (camera image + world goal).
 ``vgpnav eval navigation SCENE --agent ppo:DIR [--perception P]`` evaluates a trained policy.
@@ -70,9 +74,15 @@ CURVE_FILE = "learning_curve.png"
 EPISODE_MEASURES = ("success", "spl")
 
 
+#: Training reward charged per blocked step (the recipe's :class:`EndPenalty`).
+COLLISION_PENALTY = 0.05
+
+
 class EndPenalty(gym.Wrapper):
     """Training reward of the recipe: the env's (Habitat's) reward, minus the geodesic distance
-    still to go when the agent stops outside the success distance.
+    still to go when the agent stops outside the success distance, minus :data:`COLLISION_PENALTY`
+    per blocked step (a blocked forward step already earns only the step penalty; this makes
+    pushing into a wall cost more than turning away).
 
     With Habitat's reward alone a policy that cannot yet navigate learns to take a step or two
     towards the goal and stop (measured here: episodes of 4-8 steps after 7k steps, no success);
@@ -86,6 +96,8 @@ class EndPenalty(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         if terminated and not info["success"]:
             reward -= float(info["distance_to_goal"])
+        if info["blocked"]:
+            reward -= COLLISION_PENALTY
         return obs, reward, terminated, truncated, info
 
 
@@ -114,35 +126,47 @@ def make_vec(config: dict[str, Any], n_envs: int, seed: int, end_penalty: bool =
 class SB3Policy:
     """A saved stable-baselines3 policy acting deterministically. A policy trained with
     ``guidance`` computes its path channel itself from ``env`` (the perception-wrapped env it acts
-    in: its ``fused_map``, as the A* agent reads it)."""
+    in: its ``fused_map``, as the A* agent reads it), one trained with ``proprioception`` its
+    previous action and the env's bump sensor."""
 
     def __init__(self, path: str | Path, env: gym.Env | None = None) -> None:
         from stable_baselines3 import PPO
 
         from vgpnav_env.agents.guidance import path_channel_for
         from vgpnav_env.agents.ppo_policy import single_thread
+        from vgpnav_env.agents.proprioception import Proprioceptor
 
         single_thread()
         self.model = PPO.load(str(path), device="cpu")
         self.env = env
-        self.channel = None
-        if load_config(path)["env"].get("guidance") is not None:
-            if env is None:
-                raise ValueError(f"{path} was trained with planner guidance: give the env it acts in")
+        self.channel = self.sense = None
+        config = load_config(path)["env"]
+        if (config.get("guidance") is not None or config.get("proprioception")) and env is None:
+            raise ValueError(f"{path} was trained with guidance or proprioception: give the env it acts in")
+        if config.get("guidance") is not None:
             self.channel = path_channel_for(env, self.model.observation_space)
+        if config.get("proprioception"):
+            self.sense = Proprioceptor(env)
 
     def reset(self) -> None:
         if self.channel is not None:
             self.channel.reset()
+        if self.sense is not None:
+            self.sense.reset()
 
     def act(self, obs: Any) -> Any:
         space = self.model.observation_space
         if self.channel is not None:
             obs = {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
+        if self.sense is not None:
+            obs = {**obs, **self.sense()}
         if isinstance(obs, dict) and hasattr(space, "spaces"):
             obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
         action, _ = self.model.predict(obs, deterministic=True)
-        return int(action) if np.ndim(action) == 0 else action
+        action = int(action) if np.ndim(action) == 0 else action
+        if self.sense is not None:
+            self.sense.record(action)
+        return action
 
 
 def latest_checkpoint(out_dir: str | Path) -> Path | None:
@@ -185,6 +209,7 @@ def train_config(
     env_kwargs: dict[str, Any] | None = None,
     database_dir: str | Path | None = None,
     guidance: str | None = None,
+    proprioception: bool = False,
 ) -> dict[str, Any]:
     """The :func:`vgpnav_env.make_env` config of a training run (JSON-ready)."""
     scenes = [scenes] if isinstance(scenes, str) else list(scenes)
@@ -197,6 +222,7 @@ def train_config(
         "env": kwargs,
         "database_dir": str(database_dir) if database_dir is not None else None,
         "guidance": guidance,
+        "proprioception": bool(proprioception),
     }
 
 
@@ -225,13 +251,14 @@ def demonstrations(
     """(observations stacked per key, actions) of the A* agent (``PerceptionAStar``: the same
     estimated pose and fused map the policy has, nothing privileged) acting for ``steps`` steps in
     the training env ``config`` (its scenes in turn, the env's full goal range), the observations as
-    the policy sees them (with the guidance keys when ``config`` has guidance)."""
+    the policy sees them (with the guidance and proprioception keys when ``config`` has them)."""
     from vgpnav_env.agents.guidance import path_channel_for
+    from vgpnav_env.agents.proprioception import Proprioceptor
     from vgpnav_env.eval.navigation import PerceptionAStar
     from vgpnav_env.make import make_env
 
     scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
-    envs = [make_env({**config, "scene": s, "guidance": None}) for s in scenes]
+    envs = [make_env({**config, "scene": s, "guidance": None, "proprioception": False}) for s in scenes]
     observations: dict[str, list] = {}
     actions: list[int] = []
     episode = 0
@@ -240,15 +267,18 @@ def demonstrations(
             env = envs[episode % len(envs)]
             agent = PerceptionAStar(env)
             channel = path_channel_for(env, env.observation_space) if config.get("guidance") else None
+            sense = Proprioceptor(env) if config.get("proprioception") else None
             obs, _ = env.reset(seed=seed + episode)
             done = False
             while not done and len(actions) < steps:
                 seen = {**obs, **channel(obs, env.get_wrapper_attr("fused_map"))} if channel else obs
+                seen = {**seen, **sense()} if sense else seen
                 for key, value in seen.items():
-                    observations.setdefault(key, []).append(
-                        np.asarray(value).reshape(-1) if key == "localized" else value
-                    )
+                    flat = np.reshape(value, -1) if np.ndim(value) == 0 else value  # Discrete: (1,)
+                    observations.setdefault(key, []).append(flat)
                 action = int(agent.act(obs))
+                if sense:
+                    sense.record(action)
                 actions.append(action)
                 obs, _, terminated, truncated, _ = env.step(action)
                 done = terminated or truncated
@@ -274,11 +304,13 @@ def train_ppo(
     guidance: str | None = None,
     curriculum: bool = True,
     pretrain: int = 0,
+    proprioception: bool = False,
 ) -> Path:
     """Train (or resume) PPO for ``steps`` total env steps on ``scene`` (one source or several);
     returns the final model path. With a ``perception`` the recipe of the module docstring
     (``guidance``: the planner's path channel; ``curriculum``: the goal-distance curriculum;
-    ``pretrain``: env steps of A* demonstrations the new policy is first cloned from)."""
+    ``pretrain``: env steps of A* demonstrations the new policy is first cloned from;
+    ``proprioception``: the previous action and the bump sensor in the observation)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import configure
@@ -298,6 +330,8 @@ def train_ppo(
         raise ValueError(f"unknown perception {perception!r}; allowed: {list(PERCEPTIONS)}")
     if guidance is not None and perception is None:
         raise ValueError("guidance needs a perception (it plans on the estimated map)")
+    if proprioception and perception is None:
+        raise ValueError("proprioception needs a perception (the raw env's observation is an image)")
     for source in [scene] if isinstance(scene, str) else scene:
         list_layouts(source)  # an unknown scene fails here, before anything is written
     single_thread()
@@ -305,7 +339,7 @@ def train_ppo(
     out.mkdir(parents=True, exist_ok=True)
     saved = json.loads((out / CONFIG_FILE).read_text()) if resume and (out / CONFIG_FILE).is_file() else None
     run_config = saved or {
-        "env": train_config(scene, perception, env_kwargs, database_dir, guidance),
+        "env": train_config(scene, perception, env_kwargs, database_dir, guidance, proprioception),
         "seed": seed,
         "curriculum": bool(curriculum and perception is not None),
         "pretrain": int(pretrain),
@@ -335,6 +369,8 @@ def train_ppo(
                 obs, actions = demonstrations(config, pretrain, seed)
                 loss = behaviour_clone(model, obs, actions)
                 logger.info("cloned %d A* steps: final loss %.3f", len(actions), loss)
+        if ckpt is not None:
+            keep_progress(out, model.num_timesteps)
         model.set_logger(configure(str(out / "tb"), ["tensorboard", "csv"]))
         remaining = steps - model.num_timesteps
         if remaining > 0:
@@ -345,7 +381,8 @@ def train_ppo(
             )
             callbacks = [checkpoints, SuccessLogger()]
             if run_config.get("curriculum"):
-                callbacks.append(GoalCurriculum())
+                stage = curriculum_stage(out) if ckpt is not None else None
+                callbacks.append(GoalCurriculum() if stage is None else GoalCurriculum(start=stage))
             callback = CallbackList(callbacks)
             model.learn(remaining, callback=callback, reset_num_timesteps=ckpt is None)
             model.save(str(out / "checkpoints" / f"ppo_{model.num_timesteps}_steps"))
@@ -356,17 +393,53 @@ def train_ppo(
     return out / MODEL_FILE
 
 
+def progress_rows(run_dir: str | Path) -> list[dict[str, str]]:
+    """The logged rows of a run (``tb/progress*.csv``: the current segment and those
+    :func:`keep_progress` kept at each resumption), sorted by env steps."""
+    import csv
+
+    rows: list[dict[str, str]] = []
+    for path in sorted((Path(run_dir) / "tb").glob("progress*.csv")):
+        with open(path) as f:
+            rows += [r for r in csv.DictReader(f) if r.get("time/total_timesteps")]
+    return sorted(rows, key=lambda r: float(r["time/total_timesteps"]))
+
+
+def keep_progress(run_dir: str | Path, resumed_at: int) -> None:
+    """Before a resumed run's logger rewrites ``tb/progress.csv``: keep its rows up to the resumed
+    checkpoint's ``resumed_at`` steps in ``tb/progress_<resumed_at>.csv``."""
+    import csv
+
+    tb = Path(run_dir) / "tb"
+    current = tb / "progress.csv"
+    if not current.is_file():
+        return
+    with open(current) as f:
+        reader = csv.DictReader(f)
+        fields = list(reader.fieldnames or [])
+        rows = [r for r in reader if float(r.get("time/total_timesteps") or "inf") <= resumed_at]
+    with open(tb / f"progress_{resumed_at:09d}.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    current.unlink()
+
+
+def curriculum_stage(run_dir: str | Path) -> float | None:
+    """The last logged ``curriculum/max_geodesic`` of a run (None if none was logged)."""
+    key = "curriculum/max_geodesic"
+    stages = [r[key] for r in progress_rows(run_dir) if r.get(key)]
+    return float(stages[-1]) if stages else None
+
+
 def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Success rate and SPL, and the episode return (Habitat's reward, before :class:`EndPenalty`),
     means over the last 100 episodes, against env steps, from the run's ``tb/progress.csv``;
     written to ``out`` (default ``RUN/learning_curve.png``)."""
-    import csv
-
     from matplotlib.figure import Figure
 
     run_dir = Path(run_dir)
-    with open(run_dir / "tb" / "progress.csv") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("rollout/success_rate")]
+    rows = [r for r in progress_rows(run_dir) if r.get("rollout/success_rate")]
     if not rows:
         raise ValueError(f"{run_dir}: no logged episodes yet (rollout/success_rate)")
     steps = np.array([float(r["time/total_timesteps"]) for r in rows])
@@ -377,13 +450,14 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     ax_return.plot(steps, [float(r["rollout/ep_rew_mean"]) for r in rows], color="tab:green")
     if rows[0].get("curriculum/max_geodesic"):
         ax_goal = ax.twinx()
-        limit = [float(r["curriculum/max_geodesic"]) for r in rows]
+        limit = [float(r.get("curriculum/max_geodesic") or "nan") for r in rows]
         ax_goal.plot(steps, limit, color="tab:gray", ls="--", label="curriculum: max goal distance")
-        ax_goal.set(ylabel="max goal distance (m)", ylim=(0, max(limit) * 1.1))
+        ax_goal.set(ylabel="max goal distance (m)", ylim=(0, np.nanmax(limit) * 1.1))
         ax_goal.legend(loc="upper right")
     config = load_config(run_dir)["env"]
     scenes = config["scene"] if isinstance(config["scene"], list) else [config["scene"]]
     guided = f", {config['guidance']} guidance" if config.get("guidance") else ""
+    guided += ", proprioception" if config.get("proprioception") else ""
     run = load_config(run_dir)
     cloned = f", cloned from {run['pretrain']} A* steps" if run.get("pretrain") else ""
     where = scenes[0] if len(scenes) == 1 else f"{scenes[0]} + {len(scenes) - 1} scenes"
@@ -433,7 +507,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="clone the new policy first from this many env steps of the A* agent on the same "
         f"perception (warm start; 0: none; default with --perception: {RECIPE_PRETRAIN})",
     )
-    parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint")
+    parser.add_argument(
+        "--no-proprioception",
+        dest="proprioception",
+        action="store_false",
+        help="leave the previous action and the bump sensor out of the observation (default with "
+        "--perception: in it)",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from the newest checkpoint (with the run's saved config and curriculum stage)",
+    )
     parser.add_argument(
         "--database",
         type=Path,
@@ -476,6 +561,7 @@ def run(args: argparse.Namespace) -> int:
         guidance=None if guidance == "none" else guidance,
         curriculum=args.curriculum,
         pretrain=pretrain,
+        proprioception=recipe and args.proprioception,
     )
     if args.perception is not None:
         print(f"learning curve: {plot_learning_curve(args.out)}")

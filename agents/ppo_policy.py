@@ -12,6 +12,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from vgpnav_env.agents.proprioception import BUMPED_KEY, LAST_ACTION_KEY
+
 #: Episode measures logged to TensorBoard (means over SB3's last 100 episodes).
 LOGGED = {"success": "rollout/success_rate", "spl": "rollout/spl"}
 
@@ -29,8 +31,9 @@ class NavigationExtractor(BaseFeaturesExtractor):
     The map crop (1, S, S; SB3 scales it to [0, 1]), stacked with the planner's ``path`` channel
     when the space has one (``agents.guidance``), through 3 strided convolutions to
     ``map_features``; the goal as (log(1 + distance m), cos, sin of the bearing), the same of the
-    planner's ``waypoint`` when guided, and the localized flag to ``goal_features``; concatenated.
-    ``pose`` (world coordinates, scene specific) is ignored.
+    planner's ``waypoint`` when guided, the localized flag and, when the space has them
+    (``agents.proprioception``), the previous action (one-hot) and the bump flag to
+    ``goal_features``; concatenated. ``pose`` (world coordinates, scene specific) is ignored.
     """
 
     def __init__(
@@ -38,6 +41,7 @@ class NavigationExtractor(BaseFeaturesExtractor):
     ) -> None:
         super().__init__(observation_space, map_features + goal_features)
         self.guided = "path" in observation_space.spaces
+        self.proprioceptive = BUMPED_KEY in observation_space.spaces
         shape = observation_space["map"].shape
         shape = (shape[0] * (2 if self.guided else 1), *shape[1:])
         self.cnn = nn.Sequential(
@@ -52,7 +56,10 @@ class NavigationExtractor(BaseFeaturesExtractor):
         with torch.no_grad():
             n = self.cnn(torch.zeros(1, *shape)).shape[1]
         self.map_fc = nn.Sequential(nn.Linear(n, map_features), nn.ReLU())
-        self.goal_fc = nn.Sequential(nn.Linear(7 if self.guided else 4, goal_features), nn.ReLU())
+        n_goal = 7 if self.guided else 4
+        if self.proprioceptive:
+            n_goal += observation_space[LAST_ACTION_KEY].n + 1
+        self.goal_fc = nn.Sequential(nn.Linear(n_goal, goal_features), nn.ReLU())
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         goal = obs["goal_rel"]
@@ -60,6 +67,9 @@ class NavigationExtractor(BaseFeaturesExtractor):
         polar = [obs["goal_rel"], obs["waypoint"]] if self.guided else [obs["goal_rel"]]
         parts = [torch.cat([torch.log1p(p[:, :1]), torch.cos(p[:, 1:2]), torch.sin(p[:, 1:2])], 1)
                  for p in polar]  # fmt: skip
+        if self.proprioceptive:  # SB3 one-hot encodes both: the action as is, the bump as a flag
+            bumped = obs[BUMPED_KEY].reshape(len(goal), -1)[:, -1:]
+            parts += [obs[LAST_ACTION_KEY].reshape(len(goal), -1), bumped]
         g = torch.cat([*parts, localized], 1)
         grid = torch.cat([obs["map"], obs["path"]], 1) if self.guided else obs["map"]
         return torch.cat([self.map_fc(self.cnn(grid)), self.goal_fc(g)], dim=1)

@@ -112,8 +112,9 @@ def test_end_penalty_charges_the_distance_left_on_failure_only():
 
 
 def test_guided_recipe_sees_the_path_channel_and_evaluates_on_the_protocol(tmp_path):
-    """``guidance="path"``: the policy's CNN takes the map and the planner's path channel; the
-    evaluated policy computes the channel itself from the protocol's env."""
+    """``guidance="path"`` with ``proprioception``: the policy's CNN takes the map and the
+    planner's path channel, its goal features the previous action and the bump flag; the evaluated
+    policy computes the channel and its proprioception itself from the protocol's env."""
     from stable_baselines3 import PPO
 
     out = tmp_path / "guided"
@@ -127,11 +128,14 @@ def test_guided_recipe_sees_the_path_channel_and_evaluates_on_the_protocol(tmp_p
         env_kwargs={"image_size": (40, 30), "max_steps": 20},
         ppo_kwargs={"n_steps": 64},
         pretrain=64,
+        proprioception=True,
     )
     model = PPO.load(str(path), device="cpu")
-    assert model.policy.features_extractor.guided and "path" in model.observation_space.spaces
+    extractor, spaces = model.policy.features_extractor, model.observation_space.spaces
+    assert extractor.guided and extractor.proprioceptive and {"path", "last_action", "bumped"} <= set(spaces)
     config = load_config(out)
     assert config["env"]["guidance"] == "path" and config["curriculum"] and config["pretrain"] == 64
+    assert config["env"]["proprioception"]
     progress = (out / "tb" / "progress.csv").read_text().splitlines()
     assert "curriculum/max_geodesic" in progress[0].split(",")
     report = evaluate_navigation(

@@ -19,6 +19,8 @@ Config keys (all optional):
 - ``database_dir``: the scene's build directory for a backbone (default: the cached build).
 - ``guidance``: None, or ``path``: the agent's A* path on its estimated map as an extra observation
   channel (:mod:`vgpnav_env.agents.guidance`; needs a perception).
+- ``proprioception``: True adds the previous action and the bump sensor to the observation
+  (:mod:`vgpnav_env.agents.proprioception`; needs a perception); default False.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from typing import Any
 import gymnasium as gym
 
 ENV_ID = "VGPNav/PointGoal-v0"
-CONFIG_KEYS = ("scene", "env", "perception", "wrapper", "database_dir", "guidance")
+CONFIG_KEYS = ("scene", "env", "perception", "wrapper", "database_dir", "guidance", "proprioception")
 
 
 def env_kwargs_from(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -105,12 +107,12 @@ def make_env(config: Mapping[str, Any] | None = None) -> gym.Env:
         kwargs.setdefault("render_rgb", False)  # the model renders depth only
     env = gym.make(ENV_ID, scene=scene, **kwargs)
     if perception is None:
-        if wrapper:
-            raise ValueError("config['wrapper'] needs config['perception']")
+        for key in ("wrapper", "guidance", "proprioception"):
+            if config.get(key):
+                raise ValueError(f"config[{key!r}] needs config['perception']")
         return env
     guidance = config.get("guidance")
-    if guidance is not None and perception is None:
-        raise ValueError("config['guidance'] needs config['perception']")
+    proprioception = bool(config.get("proprioception", False))
     if perception == "model":
         from vgpnav_env.perception.model import ModelObservation
 
@@ -126,10 +128,14 @@ def make_env(config: Mapping[str, Any] | None = None) -> gym.Env:
         wrapped = VGPNavObservation(
             env, backbone=perception, database_dir=config.get("database_dir"), **wrapper
         )
-    if guidance is None:
-        return wrapped
-    from vgpnav_env.agents.guidance import GUIDANCE, PathGuidance
+    if guidance is not None:
+        from vgpnav_env.agents.guidance import GUIDANCE, PathGuidance
 
-    if guidance not in GUIDANCE:
-        raise ValueError(f"unknown guidance {guidance!r}; allowed: None or one of {list(GUIDANCE)}")
-    return PathGuidance(wrapped)
+        if guidance not in GUIDANCE:
+            raise ValueError(f"unknown guidance {guidance!r}; allowed: None or one of {list(GUIDANCE)}")
+        wrapped = PathGuidance(wrapped)
+    if proprioception:
+        from vgpnav_env.agents.proprioception import Proprioception
+
+        wrapped = Proprioception(wrapped)
+    return wrapped

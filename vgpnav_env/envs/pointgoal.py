@@ -255,6 +255,12 @@ class PointGoalEnv(gym.Env):
         """True robot pose (x, y, yaw)."""
         return self.robot.pose
 
+    @property
+    def bumped(self) -> bool:
+        """The bump sensor: whether the last step's motion was blocked (False after ``reset``).
+        A robot's bumper or stalled wheels tell it; agents may read it (nothing else privileged)."""
+        return bool(self._state is not None and self._state.blocked)
+
     def camera_T_wc(self, pose: ArrayLike | None = None) -> NDArray[np.float64]:
         """OpenCV camera pose ``T_wc`` of the robot at ``pose`` (default: the current pose)."""
         return camera_T_wc(self.robot.pose if pose is None else pose, self.camera_height, self.camera_pitch)
