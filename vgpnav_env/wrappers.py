@@ -33,7 +33,9 @@ Agents that plan in the world frame read the wrapper's attributes (``env.get_wra
 estimated pose plus ``goal_rel``. The full :class:`PerceptionResult` of the last frame (points,
 timings) is ``last_result``.
 
-``info`` is for evaluation only: it keeps the env's entries (true pose etc.) and adds
+The wrapper reads one entry of the env's ``info`` besides the privileged backbone's: ``blocked``,
+the robot's bump sensor (its hull touched something during the step), for the pose state's motion
+model. Otherwise ``info`` is for evaluation only: it keeps the env's entries (true pose etc.) and adds
 ``perception`` (the frame's status, reason, ``T_wc``, scale, scale source, anchored ground height,
 references and confident pairs, reference ``source`` -- tracking or global -- and the pose
 state's ``fix``, :data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), ``estimated_pose``,
@@ -299,7 +301,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        self.pose_state.predict(action, obs["rgb"])
+        self.pose_state.predict(action, obs["rgb"], bumped=bool(info["blocked"]))
         privileged = self._privileged(info["T_wc"], info["depth"])
         predicted = self.pose_state.tracking_pose()
         result = self.perceiver.perceive(
