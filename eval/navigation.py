@@ -79,8 +79,8 @@ class PerceptionAStar:
     ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles)
     and ``pose_state``. Until the first localized frame of an episode (there is no pose to plan
     from) it explores: one full turn in place, then straight ahead, turning ``bounce_turns`` to the
-    left whenever a forward step was blocked (the pose state's ``blocked``: the robot's bump
-    sensor), with another full turn after every ``explore_steps`` steps moved (a
+    left whenever a forward step was blocked (the robot's bump sensor, the env's ``bumped``), with
+    another full turn after every ``explore_steps`` steps moved (a
     new viewpoint each time; it used to turn and bump into the same wall for the whole episode).
     When the pose becomes uncertain -- its position standard deviation
     (the pose state's covariance, largest axis) above ``max_sigma`` metres, or without a
@@ -126,14 +126,9 @@ class PerceptionAStar:
             return self.blind > self.max_blind_steps
         return bool(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()) > self.max_sigma)
 
-    def _blocked(self) -> bool | None:
-        """Whether the last forward step was blocked (the pose state's ``blocked``: the bump
-        sensor); None without a pose state (e.g. the model perception, which moves its pose
-        estimate: the agent judges by the pose's progress)."""
-        try:
-            return bool(self.env.get_wrapper_attr("pose_state").blocked)
-        except AttributeError:
-            return None
+    def _blocked(self) -> bool:
+        """Whether the last step was blocked: the robot's bump sensor (the env's ``bumped``)."""
+        return bool(self.env.unwrapped.bumped)
 
     def _explore(self) -> Action:
         """The exploration before the first fix (see the class docstring)."""

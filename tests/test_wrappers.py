@@ -216,7 +216,7 @@ def test_motion_gate_rejects_a_pose_jump_until_it_persists(database, gate: bool)
 
 def test_bumped_forward_steps_move_the_dead_reckoned_pose_half_a_step_or_not_at_all(database):
     """Driving into a wall by dead reckoning: free steps move the estimate 0.25 m; a step the bump
-    sensor (``info["blocked"]``) reports moves it half a step (it ended anywhere along the step),
+    sensor (``env.unwrapped.bumped``) reports moves it half a step (it ended anywhere along the step),
     or nothing when the image did not change either (a push); the estimate stays within half a
     step of the true pose."""
     backbone = FlakyBackbone()
@@ -229,6 +229,7 @@ def test_bumped_forward_steps_move_the_dead_reckoned_pose_half_a_step_or_not_at_
         obs, _, _, _, info = env.step(1)
         assert obs["localized"] == 0
         step = float(np.linalg.norm(obs["pose"][:2] - before_est[:2]))
+        assert env.unwrapped.bumped == info["blocked"]
         if not info["blocked"]:
             moved += 1
             assert step == pytest.approx(0.25, abs=1e-4)

@@ -15,18 +15,18 @@ references while the estimate is certain.
 
 :class:`OdometryState` (today's behaviour): the last fix carried forward by the robot's motion
 model (:func:`vgpnav_env.robot.predict_pose`, nominal steps) for discrete actions. A blocked
-forward step moves nothing. Blocked: the robot's bump sensor (``bumped``: its hull touched
-something during the step; the env stops a blocked motion at its last collision-free pose, anywhere
-along the step) or, without one (``bumped=None``), a camera image that did not change -- mean
-absolute grey difference of a 40x30 thumbnail below ``stall_threshold`` levels (a push into a wall
-that moves a few millimetres can change it more: the bump sensor is the reliable detector). The
-odometry gate (discrete
-actions, after a first fix): a perceived pose farther than ``max_distance`` m / ``max_yaw_deg``
-from the prediction is rejected; since the last fix the distance grows by ``growth_m`` per forward
-step and the angle by ``growth_deg`` per turn (odometry uncertainty grows with motion, not time:
-turning in place does not widen the distance gate), so a drifted estimate is re-captured once the
-robot moves. Before the first fix of an episode the estimate is ``fallback`` (e.g. the map
-centre). Estimates are clipped to the box [``low``, ``high``].
+forward step moves nothing. Blocked: the robot's bump sensor (``bumped``, the env's
+:attr:`~vgpnav_env.envs.pointgoal.PointGoalEnv.bumped`; the env stops a blocked motion at its
+last collision-free pose, anywhere along the step) or, without one (``bumped=None``), a camera
+image that did not change -- mean absolute grey difference of a 40x30 thumbnail below
+``stall_threshold`` levels (a push into a wall that moves a few millimetres can change it more:
+the bump sensor is the reliable detector). The odometry gate (discrete actions, after a first
+fix): a perceived pose farther than ``max_distance`` m / ``max_yaw_deg`` from the prediction is
+rejected; since the last fix the distance grows by ``growth_m`` per forward step and the angle by
+``growth_deg`` per turn (odometry uncertainty grows with motion, not time: turning in place does
+not widen the distance gate), so a drifted estimate is re-captured once the robot moves. Before
+the first fix of an episode the estimate is ``fallback`` (e.g. the map centre). Estimates are
+clipped to the box [``low``, ``high``].
 """
 
 from __future__ import annotations
