@@ -11,8 +11,7 @@ forward, right, forward) -- and
 otherwise drives forward; it stops when the (estimated) goal distance is below ``goal_radius``.
 It replans when the goal or the grid changes, when the map changes so that the rest of the path is
 no longer traversable (or ``replan_every`` steps after the last plan), when it strays from the
-path, and when a forward action was blocked (its bump sensor, else no progress of the pose; it then
-marks contact points ahead as obstacles).
+path, and when a forward action made no progress (it then marks the cell ahead as an obstacle).
 """
 
 from __future__ import annotations
@@ -224,18 +223,9 @@ class AStarAgent:
             self._free, self._spec, pose[:2], ahead
         )
 
-    def act(
-        self,
-        pose: ArrayLike,
-        obstacles: ArrayLike,
-        spec: GridSpec,
-        goal: ArrayLike,
-        bumped: bool | None = None,
-    ) -> Action:
+    def act(self, pose: ArrayLike, obstacles: ArrayLike, spec: GridSpec, goal: ArrayLike) -> Action:
         """Next discrete :class:`~vgpnav_env.robot.Action` from the estimated ``pose``,
-        the obstacle grid (bool, ``spec.shape``) and the goal (x, y). ``bumped``: whether the last
-        action was blocked (a bump sensor); None: a forward step that moved the pose less than
-        ``min_progress`` steps was."""
+        the obstacle grid (bool, ``spec.shape``) and the goal (x, y)."""
         pose = np.asarray(pose, float)
         goal = np.asarray(goal, float)[:2]
         obstacles = np.asarray(obstacles, bool)
@@ -245,23 +235,28 @@ class AStarAgent:
             raise ValueError(
                 f"obstacle grid shape {obstacles.shape} does not match the grid spec {spec.shape}"
             )
-        # A contact point the robot's centre now stands near was a wrong guess of where the contact
-        # was (a true one stays a robot radius away; half of it leaves room for pose noise: hugging
-        # a wall used to drop the contacts along it, and the robot bumped along it for good).
-        self.blocked_points = [
-            p for p in self.blocked_points if np.linalg.norm(p - pose[:2]) > 0.5 * self.robot_radius
-        ]
         blocked = False
         if self._last_action == Action.FORWARD and self._last_pose is not None:
             moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
-            if (moved < self.min_progress * self.forward_step) if bumped is None else bumped:
-                ahead = self.robot_radius + 0.5 * spec.resolution
-                yaw = self._last_pose[2] + self.contact_arc
-                self.blocked_points.extend(pose[:2] + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=1))
-                blocked = True
+            blocked = moved < self.min_progress * self.forward_step
+        self.update_contacts(pose[:2], self._last_pose[2] if blocked else None, spec.resolution)
         action = self._decide(pose, obstacles, spec, goal, blocked)
         self._last_action, self._last_pose = action, pose
         return action
+
+    def update_contacts(self, xy: NDArray[np.float64], blocked_yaw: float | None, resolution: float) -> None:
+        """Forget the contact points the robot's centre ``xy`` (m) now stands near and, after a
+        blocked forward step heading ``blocked_yaw`` (rad; None: not blocked), mark new ones on the
+        robot's front arc (``contact_arc``), half a ``resolution`` cell beyond its radius."""
+        # A contact point the robot's centre now stands near was a wrong guess of where the contact
+        # was (a true one stays a robot radius away; half of it leaves room for pose noise: hugging
+        # a wall used to drop the contacts along it, and the robot bumped along it for good).
+        keep = 0.5 * self.robot_radius
+        self.blocked_points = [p for p in self.blocked_points if np.linalg.norm(p - xy) > keep]
+        if blocked_yaw is not None:
+            ahead = self.robot_radius + 0.5 * resolution
+            yaw = blocked_yaw + self.contact_arc
+            self.blocked_points.extend(xy + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=1))
 
     def _path_clear(self, free: NDArray[np.bool_], xy: NDArray[np.float64]) -> bool:
         """Whether the rest of the current path (from the point closest to ``xy``) stays on ``free``."""

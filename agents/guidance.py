@@ -6,7 +6,10 @@ observation gives (pose + ``goal_rel``) -- drawn into a channel aligned with the
 egocentric map crop, as Active Neural SLAM's global planner hands its local policy a short-term
 goal. Beside the channel, the ``waypoint`` on that path :data:`LOOKAHEAD` m ahead (distance m,
 bearing rad from the estimated heading; the goal itself when there is no path), the short-term goal
-of Active Neural SLAM. Nothing privileged: the same inputs as ``PerceptionAStar``. The policy then
+of Active Neural SLAM. When the observation carries the bump sensor (``agents.proprioception``), a
+blocked forward step marks contact points on the robot's front, as ``AStarAgent`` does, and the path
+goes around them (an obstacle the map does not hold no longer pins the path, and the policy following
+it, to a wall). Nothing privileged: the same inputs as ``PerceptionAStar``. The policy then
 learns the local part (following the path, stopping at the goal); the plain recipe has to learn
 the planning too.
 
@@ -25,7 +28,9 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.agents.astar import AStarAgent, _densify
+from vgpnav_env.agents.proprioception import BUMPED_KEY, LAST_ACTION_KEY
 from vgpnav_env.geometry import wrap_angle
+from vgpnav_env.robot import Action
 
 #: Observation keys of the path channel and of the waypoint, and the guidance kinds (None: plain).
 PATH_KEY, WAYPOINT_KEY = "path", "waypoint"
@@ -41,8 +46,9 @@ class PathChannel:
     :meth:`~vgpnav_env.perception.occupancy.LogOddsMap.egocentric_crop` (row 0 ahead, columns to
     the right, ``resolution`` metres per pixel): ``(1, size, size)`` uint8, :data:`PATH_VALUE` on
     the path, :data:`GOAL_VALUE` at the goal, 0 elsewhere. Replans (:meth:`_replan`) when newly
-    occupied cells block the path, the robot strays ``replan_distance`` m from it, and every
-    ``replan_every`` steps (cells that became free may open a shorter way)."""
+    occupied cells block the path, the robot strays ``replan_distance`` m from it, a blocked forward
+    step adds contact points (module docstring), and every ``replan_every`` steps (cells that became
+    free may open a shorter way)."""
 
     def __init__(
         self,
@@ -89,7 +95,9 @@ class PathChannel:
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
         occupied = fused_map.occupied()
-        if self._replan(occupied, fused_map.spec, goal, np.array([x, y])):
+        bumped = bool(obs.get(BUMPED_KEY)) and obs.get(LAST_ACTION_KEY) == Action.FORWARD
+        self.planner.update_contacts(np.array([x, y]), yaw if bumped else None, fused_map.spec.resolution)
+        if bumped or self._replan(occupied, fused_map.spec, goal, np.array([x, y])):
             self.planner.plan((x, y, yaw), occupied, fused_map.spec, goal)
             path = self.planner.path
             self._dense = None if path is None else _densify(path, 0.5 * self.resolution)

@@ -156,10 +156,10 @@ class SB3Policy:
 
     def act(self, obs: Any) -> Any:
         space = self.model.observation_space
-        if self.channel is not None:
-            obs = {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
         if self.sense is not None:
             obs = {**obs, **self.sense()}
+        if self.channel is not None:
+            obs = {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
         if isinstance(obs, dict) and hasattr(space, "spaces"):
             obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
         action, _ = self.model.predict(obs, deterministic=True)
@@ -271,8 +271,8 @@ def demonstrations(
             obs, _ = env.reset(seed=seed + episode)
             done = False
             while not done and len(actions) < steps:
-                seen = {**obs, **channel(obs, env.get_wrapper_attr("fused_map"))} if channel else obs
-                seen = {**seen, **sense()} if sense else seen
+                seen = {**obs, **sense()} if sense else obs
+                seen = {**seen, **channel(seen, env.get_wrapper_attr("fused_map"))} if channel else seen
                 for key, value in seen.items():
                     flat = np.reshape(value, -1) if np.ndim(value) == 0 else value  # Discrete: (1,)
                     observations.setdefault(key, []).append(flat)

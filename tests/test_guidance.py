@@ -41,6 +41,21 @@ def test_path_channel_draws_the_path_ahead_and_around_an_obstacle():
     assert img[6, 16] == GOAL_VALUE
 
 
+def test_a_bump_turns_the_path_around_an_obstacle_the_map_does_not_hold():
+    """Empty map, goal 1 m ahead: the path runs straight ahead. The bump sensor after a forward
+    step marks contacts on the robot's front: the path now leaves the centre column; without the
+    bump (or after a blocked turn, which is no contact ahead) it stays straight."""
+    spec = GridSpec((-2.0, -2.0), 0.05, (80, 80))
+    fused = LogOddsMap(spec)
+    pose = np.array([0.0, 0.0, np.pi / 2])
+    for last_action, bumped, around in ((1, 1, True), (1, 0, False), (2, 1, False)):
+        channel = PathChannel(size=33, resolution=0.1, robot_radius=0.2)
+        channel(_obs(pose, (0.0, 1.0)), fused)
+        obs = {**_obs(pose, (0.0, 1.0)), "last_action": last_action, "bumped": bumped}
+        rows, cols = np.nonzero(channel(obs, fused)["path"][0] == PATH_VALUE)
+        assert (np.abs(cols - 16).max() >= 3) == around, (last_action, bumped)
+
+
 def test_goal_range_applies_to_every_scene_of_a_sampler():
     env = make_env({"scene": ["home", "home:1"], "env": {"image_size": [32, 24], "render_rgb": False}})
     env.set_goal_range(1.0, 1.5)

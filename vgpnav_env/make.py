@@ -128,14 +128,14 @@ def make_env(config: Mapping[str, Any] | None = None) -> gym.Env:
         wrapped = VGPNavObservation(
             env, backbone=perception, database_dir=config.get("database_dir"), **wrapper
         )
+    if proprioception:  # inside the guidance: its planner takes in the bump sensor
+        from vgpnav_env.agents.proprioception import Proprioception
+
+        wrapped = Proprioception(wrapped)
     if guidance is not None:
         from vgpnav_env.agents.guidance import GUIDANCE, PathGuidance
 
         if guidance not in GUIDANCE:
             raise ValueError(f"unknown guidance {guidance!r}; allowed: None or one of {list(GUIDANCE)}")
         wrapped = PathGuidance(wrapped)
-    if proprioception:
-        from vgpnav_env.agents.proprioception import Proprioception
-
-        wrapped = Proprioception(wrapped)
     return wrapped
