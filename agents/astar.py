@@ -11,7 +11,8 @@ forward, right, forward) -- and
 otherwise drives forward; it stops when the (estimated) goal distance is below ``goal_radius``.
 It replans when the goal or the grid changes, when the map changes so that the rest of the path is
 no longer traversable (or ``replan_every`` steps after the last plan), when it strays from the
-path, and when a forward action made no progress (it then marks the cell ahead as an obstacle).
+path, and when a forward action was blocked (its bump sensor, else no progress of the pose; it then
+marks contact points ahead as obstacles).
 """
 
 from __future__ import annotations
@@ -223,9 +224,18 @@ class AStarAgent:
             self._free, self._spec, pose[:2], ahead
         )
 
-    def act(self, pose: ArrayLike, obstacles: ArrayLike, spec: GridSpec, goal: ArrayLike) -> Action:
+    def act(
+        self,
+        pose: ArrayLike,
+        obstacles: ArrayLike,
+        spec: GridSpec,
+        goal: ArrayLike,
+        bumped: bool | None = None,
+    ) -> Action:
         """Next discrete :class:`~vgpnav_env.robot.Action` from the estimated ``pose``,
-        the obstacle grid (bool, ``spec.shape``) and the goal (x, y)."""
+        the obstacle grid (bool, ``spec.shape``) and the goal (x, y). ``bumped``: whether the last
+        action was blocked (a bump sensor); None: a forward step that moved the pose less than
+        ``min_progress`` steps was."""
         pose = np.asarray(pose, float)
         goal = np.asarray(goal, float)[:2]
         obstacles = np.asarray(obstacles, bool)
@@ -238,7 +248,7 @@ class AStarAgent:
         blocked = False
         if self._last_action == Action.FORWARD and self._last_pose is not None:
             moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
-            blocked = moved < self.min_progress * self.forward_step
+            blocked = (moved < self.min_progress * self.forward_step) if bumped is None else bool(bumped)
         self.update_contacts(pose[:2], self._last_pose[2] if blocked else None, spec.resolution)
         action = self._decide(pose, obstacles, spec, goal, blocked)
         self._last_action, self._last_pose = action, pose

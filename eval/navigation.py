@@ -79,8 +79,8 @@ class PerceptionAStar:
     ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles)
     and ``pose_state``. Until the first localized frame of an episode (there is no pose to plan
     from) it explores: one full turn in place, then straight ahead, turning ``bounce_turns`` to the
-    left whenever a forward step was blocked (the pose state's ``stalled``: no change in the
-    pixels), with another full turn after every ``explore_steps`` steps moved (a
+    left whenever a forward step was blocked (the robot's bump sensor, the env's ``bumped``), with
+    another full turn after every ``explore_steps`` steps moved (a
     new viewpoint each time; it used to turn and bump into the same wall for the whole episode).
     When the pose becomes uncertain -- its position standard deviation
     (the pose state's covariance, largest axis) above ``max_sigma`` metres, or without a
@@ -127,12 +127,8 @@ class PerceptionAStar:
         return bool(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()) > self.max_sigma)
 
     def _blocked(self) -> bool:
-        """Whether the last step was blocked: the pose state saw no change in the pixels (a
-        wrapper without one, e.g. the model perception, moves its pose estimate: never)."""
-        try:
-            return bool(self.env.get_wrapper_attr("pose_state").stalled)
-        except AttributeError:
-            return False
+        """Whether the last step was blocked: the robot's bump sensor (the env's ``bumped``)."""
+        return bool(self.env.unwrapped.bumped)
 
     def _explore(self) -> Action:
         """The exploration before the first fix (see the class docstring)."""
@@ -162,7 +158,7 @@ class PerceptionAStar:
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
         fused = self.env.get_wrapper_attr("fused_map")
-        action = self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal)
+        action = self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal, self._blocked())
         if self.agent.path is not None:
             self.env.unwrapped.set_overlay(path=self.agent.path)  # drawn by render()
         return action

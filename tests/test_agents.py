@@ -194,9 +194,8 @@ def test_perception_agent_explores_out_of_a_dead_end_before_its_first_fix():
     occ, spec = room(with_wall=False)
     occ[18:20, :60] = True  # corridor walls at y = 0.9-1.0 m and 2.0-2.1 m, x < 3 m, closed at x = 0.1 m
     occ[40:42, :60] = True
-    base = SimpleNamespace(robot_radius=RADIUS, forward_step=0.25, turn_step=np.radians(15.0))
-    state = SimpleNamespace(stalled=False)  # the pose state's stall detection: the robot did not move
-    env = SimpleNamespace(unwrapped=base, get_wrapper_attr={"pose_state": state}.__getitem__)
+    base = SimpleNamespace(robot_radius=RADIUS, forward_step=0.25, turn_step=np.radians(15.0), bumped=False)
+    env = SimpleNamespace(unwrapped=base)
     policy = PerceptionAStar(env)
     robot = KinematicRobot(occ, spec, (0.5, 1.5, np.pi))
     actions = []
@@ -204,7 +203,7 @@ def test_perception_agent_explores_out_of_a_dead_end_before_its_first_fix():
         actions.append(policy.act({"pose": np.array([3.0, 3.0, 0.0]), "localized": 0}))  # placeholder
         before = robot.pose
         robot.step(actions[-1])
-        state.stalled = bool(np.allclose(before, robot.pose))
+        base.bumped = bool(np.allclose(before, robot.pose))  # the bump sensor
     assert actions[:24] == [TURN_LEFT] * 24  # one full look-around first
     assert np.asarray(robot.history)[:, 0].max() > 2.0 and robot.collisions <= 4, robot.collisions
 

@@ -47,14 +47,22 @@ def test_dead_reckoning_moves_by_the_motion_model_unless_the_image_stalls():
 
 
 @pytest.mark.parametrize("kind", [OdometryState, EKFState])
-def test_stalled_reports_a_blocked_step_also_before_the_first_fix(kind):
+def test_blocked_reports_a_bumped_or_stalled_forward_step_also_before_the_first_fix(kind):
+    """The bump sensor decides when there is one; without it (None) an unchanged image does; turns
+    are never blocked."""
     s = kind(LOW, HIGH)
     s.reset(IMAGES[0], fallback=(1.0, 2.0, 0.0))
-    assert not s.stalled
+    assert not s.blocked
     s.predict(Action.FORWARD, IMAGES[0])  # no fix yet: the estimate stays the placeholder
-    assert s.stalled
+    assert s.blocked
     s.predict(Action.FORWARD, IMAGES[1])
-    assert not s.stalled
+    assert not s.blocked
+    s.predict(Action.FORWARD, IMAGES[2], bumped=True)  # the image changed, yet the hull touched
+    assert s.blocked
+    s.predict(Action.FORWARD, IMAGES[2], bumped=False)  # the image did not change: a blank wall
+    assert not s.blocked
+    s.predict(Action.TURN_LEFT, IMAGES[2])
+    assert not s.blocked
 
 
 def test_gate_is_centred_on_the_prediction_and_grows_with_motion_since_the_fix():
@@ -163,9 +171,32 @@ def test_ekf_fix_within_the_gate_corrects_and_shrinks_the_covariance():
 
 def test_ekf_blocked_forward_step_moves_nothing():
     s = started()
-    s.predict(Action.FORWARD, IMAGES[0])  # the same image: blocked
+    s.predict(Action.FORWARD, IMAGES[0])  # the same image, no bump sensor: blocked
     s.correct(None)
     np.testing.assert_allclose(s.estimate, (0.0, 0.0, 0.0))
+    s.predict(Action.FORWARD, IMAGES[0], bumped=True)  # bumped, the same image: a push
+    s.correct(None)
+    np.testing.assert_allclose(s.estimate, (0.0, 0.0, 0.0))
+    s.predict(Action.FORWARD, IMAGES[0], bumped=False)  # not bumped: a full step, whatever the image
+    s.correct(None)
+    np.testing.assert_allclose(s.estimate, (0.25, 0.0, 0.0))
+
+
+def test_ekf_bumped_step_covers_any_stop_along_the_step():
+    """A forward step that bumped while its image changed stopped anywhere along the step (the
+    env stops a blocked motion at its last free pose): half a step, the along-track variance of a
+    uniform over the step (0.25^2 / 12) added, so that right fixes where the robot stayed (home's
+    A* test episode: 5 mm travelled, the estimate ran 0.245 m ahead and the right fixes were
+    rejected) and where it went a full step are both accepted."""
+    for moved in (0.0, 0.125, 0.25):
+        s = started()
+        s.predict(Action.FORWARD, IMAGES[1], bumped=True)
+        np.testing.assert_allclose(s.estimate, (0.125, 0.0, 0.0))
+        cfg = s.config
+        assert s.covariance[0, 0] == pytest.approx(cfg.fix_sigma**2 + cfg.forward_sigma**2 + 0.25**2 / 12)
+        s.correct(np.array([moved, 0.0, 0.0]))
+        assert s.fix == "accepted", moved
+        assert abs(s.estimate[0] - moved) < 0.05
 
 
 def test_ekf_rejects_a_gross_fix_and_relocalizes_after_repeated_consistent_ones():

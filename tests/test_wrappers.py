@@ -214,26 +214,32 @@ def test_motion_gate_rejects_a_pose_jump_until_it_persists(database, gate: bool)
     env.close()
 
 
-def test_blocked_forward_steps_do_not_move_the_dead_reckoned_pose(database):
+def test_bumped_forward_steps_move_the_dead_reckoned_pose_half_a_step_or_not_at_all(database):
+    """Driving into a wall by dead reckoning: free steps move the estimate 0.25 m; a step the bump
+    sensor (``env.unwrapped.bumped``) reports moves it half a step (it ended anywhere along the step),
+    or nothing when the image did not change either (a push); the estimate stays within half a
+    step of the true pose."""
     backbone = FlakyBackbone()
     env = VGPNavObservation(gym.make(ENV_ID, scene="home", image_size=HOME_SIZE), backbone, database=database)
     obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
     backbone.fail = True  # dead reckoning only
-    moved = blocked = 0
-    for _ in range(30):  # drive ahead (+x) until a wall stops the robot, then push into it twice
-        before_true, before_est = info["pose"].copy(), obs["pose"].copy()
+    moved, bumped = 0, []
+    for _ in range(30):  # drive ahead (+x) until a wall stops the robot, then push into it
+        before_est = obs["pose"].copy()
         obs, _, _, _, info = env.step(1)
         assert obs["localized"] == 0
-        step = obs["pose"][:2] - before_est[:2]
-        if np.linalg.norm(info["pose"][:2] - before_true[:2]) > 1e-6:
-            moved += 1  # the robot moved: odometry advanced by the nominal 0.25 m
-            assert np.linalg.norm(step) == pytest.approx(0.25, abs=1e-4)
+        step = float(np.linalg.norm(obs["pose"][:2] - before_est[:2]))
+        assert env.unwrapped.bumped == info["blocked"]
+        if not info["blocked"]:
+            moved += 1
+            assert step == pytest.approx(0.25, abs=1e-4)
         else:
-            blocked += 1  # the image did not change: odometry stays put
-            np.testing.assert_allclose(step, 0.0, atol=1e-6)
-            if blocked == 2:
+            bumped.append(round(step, 4))
+            assert step == pytest.approx(0.125, abs=1e-4) or step < 1e-6
+            if len(bumped) == 3:
                 break
-    assert moved >= 1 and blocked == 2
+        assert np.linalg.norm(obs["pose"][:2] - info["pose"][:2]) < 0.125 + 0.01
+    assert moved >= 1 and len(bumped) == 3 and 0.0 in bumped, bumped  # pushes that stall
     env.close()
 
 

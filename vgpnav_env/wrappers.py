@@ -33,16 +33,16 @@ Agents that plan in the world frame read the wrapper's attributes (``env.get_wra
 estimated pose plus ``goal_rel``. The full :class:`PerceptionResult` of the last frame (points,
 timings) is ``last_result``.
 
-``info`` is for evaluation only: it keeps the env's entries (true pose etc.) and adds
-``perception`` (the frame's status, reason, ``T_wc``, scale, scale source, anchored ground height,
-references and confident pairs, reference ``source`` -- tracking or global -- and the pose
-state's ``fix``, :data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), ``estimated_pose``,
-``obstacles`` (bool grid of occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``),
-and the metrics of the ``"estimate"`` measures of :mod:`vgpnav_env.measures`:
+The pose state's motion model reads the env's bump sensor (``env.unwrapped.bumped``: the step's
+motion was blocked) beside the actions. ``info`` is for evaluation only: it keeps the env's entries
+(true pose etc.) and adds ``perception`` (the frame's status, reason, ``T_wc``, scale, scale
+source, anchored ground height, references and confident pairs, reference ``source`` -- tracking or
+global -- and the pose state's ``fix``, :data:`~vgpnav_env.perception.state.FIX_OUTCOMES`),
+``estimated_pose``, ``obstacles`` (bool grid of occupied cells of the fused map) with ``map_spec``
+(its ``GridSpec``), and the metrics of the ``"estimate"`` measures of :mod:`vgpnav_env.measures`:
 ``localization_error_m`` (horizontal error of the observed ``pose``; nan before the pose state's
 first estimate, whose frames ``no_estimate`` marks), ``localized``, ``tracked``, ``relocalized``
-and ``gross_pose_error``. Timings stay out of it so that ``info`` is comparable
-between runs.
+and ``gross_pose_error``. Timings stay out of it so that ``info`` is comparable between runs.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
@@ -299,7 +299,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        self.pose_state.predict(action, obs["rgb"])
+        self.pose_state.predict(action, obs["rgb"], bumped=self.env.unwrapped.bumped)
         privileged = self._privileged(info["T_wc"], info["depth"])
         predicted = self.pose_state.tracking_pose()
         result = self.perceiver.perceive(

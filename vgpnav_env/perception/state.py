@@ -2,7 +2,7 @@
 
 Per frame the caller (the VGP-Nav wrapper) runs::
 
-    state.predict(action, rgb)           # motion update: the commanded action, seen through pixels
+    state.predict(action, rgb, bumped)   # motion update: the commanded action, its bump, the pixels
     gate = state.gate()                  # where a perceived pose may lie (None: anywhere)
     result = perceiver.perceive(rgb, gate=gate)
     state.correct(base_pose(result.T_wc) if result.localized else None)
@@ -14,15 +14,19 @@ kidnapping detection, and a :meth:`~PoseState.tracking_pose` around which the pe
 references while the estimate is certain.
 
 :class:`OdometryState` (today's behaviour): the last fix carried forward by the robot's motion
-model (:func:`vgpnav_env.robot.predict_pose`, nominal steps) for discrete actions. A forward step
-after which the camera image did not change -- mean absolute grey difference of a 40x30 thumbnail
-below ``stall_threshold`` levels -- was blocked and moves nothing. The odometry gate (discrete
-actions, after a first fix): a perceived pose farther than ``max_distance`` m / ``max_yaw_deg``
-from the prediction is rejected; since the last fix the distance grows by ``growth_m`` per forward
-step and the angle by ``growth_deg`` per turn (odometry uncertainty grows with motion, not time:
-turning in place does not widen the distance gate), so a drifted estimate is re-captured once the
-robot moves. Before the first fix of an episode the estimate is ``fallback`` (e.g. the map
-centre). Estimates are clipped to the box [``low``, ``high``].
+model (:func:`vgpnav_env.robot.predict_pose`, nominal steps) for discrete actions. A blocked
+forward step moves nothing. Blocked: the robot's bump sensor (``bumped``, the env's
+:attr:`~vgpnav_env.envs.pointgoal.PointGoalEnv.bumped`; the env stops a blocked motion at its
+last collision-free pose, anywhere along the step) or, without one (``bumped=None``), a camera
+image that did not change -- mean absolute grey difference of a 40x30 thumbnail below
+``stall_threshold`` levels (a push into a wall that moves a few millimetres can change it more:
+the bump sensor is the reliable detector). The odometry gate (discrete actions, after a first
+fix): a perceived pose farther than ``max_distance`` m / ``max_yaw_deg`` from the prediction is
+rejected; since the last fix the distance grows by ``growth_m`` per forward step and the angle by
+``growth_deg`` per turn (odometry uncertainty grows with motion, not time: turning in place does
+not widen the distance gate), so a drifted estimate is re-captured once the robot moves. Before
+the first fix of an episode the estimate is ``fallback`` (e.g. the map centre). Estimates are
+clipped to the box [``low``, ``high``].
 """
 
 from __future__ import annotations
@@ -78,8 +82,11 @@ class PoseState(Protocol):
         """A new episode: no fix yet, ``fallback`` (x, y, yaw) until the first one; ``rgb`` is the
         first camera image."""
 
-    def predict(self, action: int | NDArray | None, rgb: NDArray[np.uint8]) -> None:
-        """Motion update for the commanded ``action``, with the camera image taken after it."""
+    def predict(
+        self, action: int | NDArray | None, rgb: NDArray[np.uint8], bumped: bool | None = None
+    ) -> None:
+        """Motion update for the commanded ``action``, with the camera image taken after it and the
+        bump sensor's reading during it (None: no bump sensor, blocked steps are seen in pixels)."""
 
     def gate(self) -> PoseGate | None:
         """Where this frame's perceived pose must lie to be accepted (None: no constraint)."""
@@ -100,9 +107,9 @@ class PoseState(Protocol):
         """What the last :meth:`correct` did with its measurement (:data:`FIX_OUTCOMES`)."""
 
     @property
-    def stalled(self) -> bool:
-        """Whether the image of the last :meth:`predict` did not change (after a forward step: it
-        was blocked), also before the first fix, when :attr:`estimate` does not move."""
+    def blocked(self) -> bool:
+        """Whether the last :meth:`predict`'s forward step was blocked (its bump, or without a bump
+        sensor an unchanged image), also before the first fix, when :attr:`estimate` does not move."""
 
     @property
     def covariance(self) -> NDArray[np.float64] | None:
@@ -133,24 +140,23 @@ class _StallDetector:
             raise ValueError(f"stall_threshold must be >= 0 grey levels (0 = off), got {threshold}")
         self.threshold = float(threshold)
         self._thumbnail: NDArray[np.float32] | None = None
-        self.last = False  # the last result of stalled()
 
     def reset(self, rgb: NDArray[np.uint8]) -> None:
         self._thumbnail = _thumbnail(rgb)
-        self.last = False
 
     def stalled(self, rgb: NDArray[np.uint8]) -> bool:
         thumbnail = _thumbnail(rgb)
-        self.last = float(np.abs(thumbnail - self._thumbnail).mean()) < self.threshold
+        stalled = float(np.abs(thumbnail - self._thumbnail).mean()) < self.threshold
         self._thumbnail = thumbnail
-        return self.last
+        return stalled
 
 
-def _effective_action(action: int | NDArray, stalled: bool) -> Action:
-    """The discrete action the robot carried out: a forward step whose image did not change was
-    blocked, the robot stayed (STOP)."""
-    action = Action(int(action))
-    return Action.STOP if stalled and action == Action.FORWARD else action
+def _blocked(action: int | NDArray | None, stalled: bool, bumped: bool | None) -> bool:
+    """Whether a forward ``action`` was blocked: it ``bumped`` (the bump sensor), or without one
+    (None) its image ``stalled``. Other actions are never blocked (the hull is a disc)."""
+    if action is None or np.ndim(action) != 0 or Action(int(action)) != Action.FORWARD:
+        return False
+    return stalled if bumped is None else bool(bumped)
 
 
 class OdometryState:
@@ -183,6 +189,7 @@ class OdometryState:
         self._localized = False
         self._moves_since_fix = np.zeros(2)  # forward steps, turns
         self._stall = _StallDetector(stall_threshold)
+        self._blocked = False
 
     @property
     def estimate(self) -> NDArray[np.float64]:
@@ -197,8 +204,8 @@ class OdometryState:
         return "accepted" if self._localized else "none"
 
     @property
-    def stalled(self) -> bool:
-        return self._stall.last
+    def blocked(self) -> bool:
+        return self._blocked
 
     @property
     def covariance(self) -> None:
@@ -219,13 +226,16 @@ class OdometryState:
         self._localized = False
         self._moves_since_fix = np.zeros(2)
         self._stall.reset(rgb)
+        self._blocked = False
 
-    def predict(self, action: int | NDArray | None, rgb: NDArray[np.uint8]) -> None:
-        stalled = self._stall.stalled(rgb)
+    def predict(
+        self, action: int | NDArray | None, rgb: NDArray[np.uint8], bumped: bool | None = None
+    ) -> None:
+        self._blocked = _blocked(action, self._stall.stalled(rgb), bumped)
         if not self.discrete or action is None:
             self._predicted = self._estimate.copy() if self._have_fix else None
             return
-        action = _effective_action(action, stalled)
+        action = Action.STOP if self._blocked else Action(int(action))
         if self._have_fix:
             self._predicted = predict_pose(self._estimate, action, self.forward_step, self.turn_step)
         self._moves_since_fix += (action == Action.FORWARD, action in (Action.TURN_LEFT, Action.TURN_RIGHT))
@@ -314,8 +324,10 @@ class EKFState:
     """An extended Kalman filter over the planar pose (x, y, yaw) in W (the "temporal" mode).
 
     Process model: the robot's motion model (:func:`~vgpnav_env.robot.predict_pose`) for the
-    commanded discrete action, noise per :class:`EKFConfig`; a forward step whose image did not
-    change was blocked and moves nothing (as :class:`OdometryState`). Measurements: perceived poses
+    commanded discrete action, noise per :class:`EKFConfig`; a blocked forward step (bump sensor,
+    else an unchanged image) moved anywhere from nothing to a full step: half a step, the variance
+    of a uniform over the step added (a fix where the robot stayed is then within the gate), or
+    nothing when its image did not change either. Measurements: perceived poses
     with covariance ``config.fix_covariance``, Mahalanobis-gated (no :class:`PoseGate`: the perceiver
     is not constrained, so that fixes contradicting the estimate still reach :meth:`correct` for
     kidnapping detection). Before the first estimate (``config.init_fixes`` consistent fixes) the
@@ -339,6 +351,7 @@ class EKFState:
         self.forward_step, self.turn_step = float(forward_step), float(turn_step)
         self.config = config or EKFConfig()
         self._stall = _StallDetector(stall_threshold)
+        self._blocked = False
         self._x = np.zeros(3)
         self._P = np.full((3, 3), np.inf)
         self._have_fix = False
@@ -369,11 +382,12 @@ class EKFState:
         return self._fix
 
     @property
-    def stalled(self) -> bool:
-        return self._stall.last
+    def blocked(self) -> bool:
+        return self._blocked
 
     def reset(self, rgb: NDArray[np.uint8], fallback: ArrayLike) -> None:
         self._stall.reset(rgb)
+        self._blocked = False
         self._x = np.asarray(fallback, float).copy()
         self._P = np.full((3, 3), np.inf)
         self._have_fix = False
@@ -381,30 +395,43 @@ class EKFState:
         self._candidate, self._candidate_count = None, 0
         self._support = 0
 
-    def _process(self, x: NDArray[np.float64], P: NDArray[np.float64], action: Action | None):
-        """(x, P) moved by ``action`` (None: a continuous command of unknown extent)."""
+    def _motion(self, action: int | NDArray | None, blocked: bool, stalled: bool):
+        """The commanded ``action`` as a motion (forward m, left m, yaw rad) in the robot frame with
+        its 3x3 covariance; None: a continuous command of unknown extent. A ``blocked`` forward step
+        ended anywhere along the step (the env stops it at the last collision-free pose): half a
+        step with the variance of a uniform over the step added, or nothing when the image also
+        ``stalled`` (a push against what blocked it)."""
         cfg = self.config
-        if action is None:
-            Q = np.diag([cfg.continuous_sigma**2] * 2 + [np.radians(cfg.continuous_sigma_deg) ** 2])
-            return x, P + Q
+        if not self.discrete or action is None:
+            return None
+        action = Action(int(action))
         if action == Action.FORWARD:
-            c, s = np.cos(x[2]), np.sin(x[2])
-            F = np.array([[1.0, 0.0, -self.forward_step * s], [0.0, 1.0, self.forward_step * c], [0, 0, 1]])
-            G = np.array([[c, -s], [s, c], [0.0, 0.0]])
-            Q = G @ np.diag([cfg.forward_sigma**2, cfg.lateral_sigma**2]) @ G.T
-        elif action in (Action.TURN_LEFT, Action.TURN_RIGHT):
-            F, Q = np.eye(3), np.diag([0.0, 0.0, np.radians(cfg.turn_sigma_deg) ** 2])
-        else:
-            return x, P
-        return predict_pose(x, action, self.forward_step, self.turn_step), F @ P @ F.T + Q
+            if blocked and stalled:
+                return np.zeros(3), np.zeros((3, 3))
+            length, variance = self.forward_step, cfg.forward_sigma**2
+            if blocked:
+                length, variance = 0.5 * length, variance + length**2 / 12.0
+            return np.array([length, 0.0, 0.0]), np.diag([variance, cfg.lateral_sigma**2, 0.0])
+        if action in (Action.TURN_LEFT, Action.TURN_RIGHT):
+            yaw = self.turn_step if action == Action.TURN_LEFT else -self.turn_step
+            return np.array([0.0, 0.0, yaw]), np.diag([0.0, 0.0, np.radians(cfg.turn_sigma_deg) ** 2])
+        return np.zeros(3), np.zeros((3, 3))
 
-    def predict(self, action: int | NDArray | None, rgb: NDArray[np.uint8]) -> None:
+    def predict(
+        self, action: int | NDArray | None, rgb: NDArray[np.uint8], bumped: bool | None = None
+    ) -> None:
         stalled = self._stall.stalled(rgb)
-        act = _effective_action(action, stalled) if self.discrete and action is not None else None
-        if self._have_fix:
-            self._x, self._P = self._process(self._x, self._P, act)
-        if self._candidate is not None:
-            self._candidate, self._candidate_P = self._process(self._candidate, self._candidate_P, act)
+        self._blocked = _blocked(action, stalled, bumped)
+        motion = self._motion(action, self._blocked, stalled)
+        if motion is None:
+            cfg = self.config
+            Q = np.diag([cfg.continuous_sigma**2] * 2 + [np.radians(cfg.continuous_sigma_deg) ** 2])
+            if self._have_fix:
+                self._P = self._P + Q
+            if self._candidate is not None:
+                self._candidate_P = self._candidate_P + Q
+            return
+        self.predict_odometry(*motion)
 
     def odometry_covariance(self, motion: ArrayLike) -> NDArray[np.float64]:
         """The 3x3 covariance of measured odometry ``motion`` (forward m, left m, yaw rad): that of
