@@ -277,13 +277,19 @@ def test_single_pair_fallback(database: Database, query) -> None:
     run, depth = query
     i = 2
     priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
-    # One pair alone places the query right, but one reference is not enough to confirm it.
-    strict = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    # One pair alone places the query right; by default its many explained matches confirm it.
+    default = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    result = Perceiver(database, _one_pair(seed=0), config=default).perceive(run.images[i], priv)
+    assert result.localized and "single-pair fallback" in result.detail, result.detail
+    assert result.verdict.n_supporting == 1 and result.verdict.strength >= 100
+    dt, dr = errors(result.T_wc, run.poses[i])
+    assert dt < 0.02 and dr < 0.1
+    # Asking for more matches than the pair explains (or two references) leaves it unverified.
+    above = VerifyConfig(single_reference_support=result.verdict.strength + 1)
+    strict = replace(default, verify=above)
     result = Perceiver(database, _one_pair(seed=0), config=strict).perceive(run.images[i], priv)
     assert result.status == "lost" and result.reason == "unverified", result.detail
     assert "single-pair fallback" in result.detail and result.verdict.n_supporting == 1
-    dt, dr = errors(result.T_wc, run.poses[i])
-    assert dt < 0.02 and dr < 0.1
     on = replace(strict, verify=VerifyConfig(min_supporting_references=1))
     result = Perceiver(database, _one_pair(seed=0), config=on).perceive(run.images[i], priv)
     assert result.localized and result.detail.startswith("single-pair fallback"), result.detail
@@ -307,10 +313,20 @@ def test_second_round_verifies_references_around_a_lone_pair(database: Database,
     assert result.motion.inliers.sum() >= 3
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
+    # One round: the lone pair's fallback pose, which one reference alone confirms only when it
+    # explains single_reference_support matches.
     one_round = replace(config, verify=VerifyConfig(second_round_below_inliers=None))
     single = Perceiver(database, _known_failures(first[1:], seed=0), config=one_round).perceive(
         run.images[i], priv
     )
+    assert single.localized and "single-pair fallback" in single.detail, single.detail
+    assert single.verdict.n_supporting == 1 and single.verdict.strength >= 100
+    above = VerifyConfig(
+        second_round_below_inliers=None, single_reference_support=single.verdict.strength + 1
+    )
+    single = Perceiver(
+        database, _known_failures(first[1:], seed=0), config=replace(config, verify=above)
+    ).perceive(run.images[i], priv)
     assert single.reason == "unverified" and "single-pair fallback" in single.detail
 
 

@@ -215,3 +215,32 @@ def test_off_plane_support_rejects_a_place_that_only_repeats_a_walls_texture() -
     assert off_plane_matches(no_matches, 2.0) is no_matches
     with pytest.raises(ValueError, match="plane_threshold_px"):
         VerifyConfig(plane_threshold_px=0.0)
+
+
+def test_one_reference_confirms_a_place_only_with_single_reference_support_matches() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    # Two of room A's references and one of room B's: one pair of B explains B's pose in full.
+    keep = [0, 1, 3]
+    out = replace(
+        out, T_qi=out.T_qi[keep], confidence=out.confidence[keep], n_matches=out.n_matches[keep],
+        scale_valid=out.scale_valid[keep], matches=[out.matches[i] for i in keep],
+    )  # fmt: skip
+    T_wi = T_wi[keep]
+    lone = int(epipolar_support(T_b, T_wi[2:], out.matches[2:], CAMERA, 2.0)[0])
+    assert lone >= 100
+    # As a rival, the lone pair of room B (half of A's two pairs) makes room A's pose ambiguous...
+    config = VerifyConfig(single_reference_support=lone, ambiguity_ratio=0.4)
+    verdict = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b])
+    assert verdict.reason == "ambiguous" and verdict.rival_strength == lone, verdict.detail
+    # ...but not when one reference must explain more than it does (nor without the rule).
+    for single in (lone + 1, None):
+        verdict = verify_pose(
+            T_a, T_wi, out, CAMERA, VerifyConfig(single_reference_support=single), rivals=[T_b]
+        )
+        assert verdict.ok and verdict.rival_strength == 0, verdict.detail
+    # As the pose, B's single pair confirms it only with single_reference_support matches.
+    alone = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig(single_reference_support=lone))
+    assert alone.ok and alone.n_supporting == 1 and alone.strength == lone
+    for single in (lone + 1, None):
+        alone = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig(single_reference_support=single))
+        assert alone.reason == "unverified" and "1 reference(s)" in alone.detail
