@@ -434,8 +434,11 @@ def curriculum_stage(run_dir: str | Path) -> float | None:
 
 def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Success rate and SPL, and the episode return (Habitat's reward, before :class:`EndPenalty`),
-    means over the last 100 episodes, against env steps, from the run's ``tb/progress.csv``;
+    means over the last 100 episodes, against env steps, from the run's ``tb/progress*.csv``
+    (dotted lines: where the run was resumed);
     written to ``out`` (default ``RUN/learning_curve.png``)."""
+    import textwrap
+
     from matplotlib.figure import Figure
 
     run_dir = Path(run_dir)
@@ -462,7 +465,11 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     cloned = f", cloned from {run['pretrain']} A* steps" if run.get("pretrain") else ""
     where = scenes[0] if len(scenes) == 1 else f"{scenes[0]} + {len(scenes) - 1} scenes"
     ax.set(ylabel="mean, last 100 episodes", ylim=(0, 1))
-    ax.set_title(f"PPO, {config['perception']} perception{guided}{cloned}, {where}", fontsize=9)
+    title = f"PPO, {config['perception']} perception{guided}{cloned}, {where}"
+    ax.set_title(textwrap.fill(title, 80), fontsize=9)
+    for p in (run_dir / "tb").glob("progress_*.csv"):  # resumptions (keep_progress)
+        for a in (ax, ax_return):
+            a.axvline(int(p.stem.split("_")[1]), color="k", ls=":", lw=1)
     ax_return.set(xlabel="env steps", ylabel="episode return (Habitat reward)")
     for a in (ax, ax_return):
         a.grid(alpha=0.3)
