@@ -120,16 +120,17 @@ class AStarAgent:
         """Cells the robot centre may visit: not within ``inflation`` (default: robot radius +
         margin) of an obstacle or a contact point (default: all of ``blocked_points``), and
         ``navigable`` if the agent was given that (known contact-free cells, e.g. the ground
-        truth's). The robot's own footprint is always traversable (obstacles or blocked cells under
-        the robot are errors), so a plan can start."""
+        truth's). The robot's own footprint is always traversable (mapped obstacles under the robot
+        are errors), so a plan can start; contact points are not cleared from under it (a contact
+        lies a robot radius ahead, and its cell's centre can fall within the radius)."""
         occ = obstacles.copy()
+        near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
+        occ[near] = False
         contacts = self.blocked_points if contacts is None else contacts
-        if contacts:
+        if contacts:  # felt, not mapped: kept even where its cell's centre lies under the footprint
             cells = spec.world_to_cell(np.asarray(contacts))
             cells = cells[spec.contains(cells)]
             occ[cells[:, 0], cells[:, 1]] = True
-        near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
-        occ[near] = False
         free = ~inflate(occ, spec.resolution, self.inflation if inflation is None else inflation)
         if self.navigable is not None:
             free &= self.navigable

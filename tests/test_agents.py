@@ -250,3 +250,24 @@ def test_agent_plans_despite_obstacles_mapped_under_itself_and_closed_maps():
     closed[59:61, :] = True  # the gap is mapped closed: fall back to optimistic planning
     agent.plan((1.0, 1.0, 0.0), closed, spec, (1.0, 5.0))
     assert agent.path is not None and np.allclose(agent.path[-1], (1.0, 5.0))
+
+
+def test_a_contact_under_the_footprint_edge_still_blocks_the_way_ahead():
+    """Hospital seed 4 (navigation, classical): the robot pushed into an unmapped wall for 475
+    steps with a right pose. Its straight-ahead contact mark lay 0.225 m ahead, in a cell whose
+    centre is 0.198 m from the robot (within its 0.2 m radius): the footprint clearing erased it,
+    and the tight-inflation plan led straight through it again after every bump."""
+    spec = GridSpec((-0.925, -0.975), RES, (241, 442))  # the fused map's grid of that episode
+    pose = np.array([6.7276, 5.6817, -2.0241])
+    agent = AStarAgent(robot_radius=RADIUS)
+    agent.update_contacts(pose[:2], pose[2], RES)
+    ahead = pose[:2] + (RADIUS + 0.5 * RES) * np.array([np.cos(pose[2]), np.sin(pose[2])])
+    cell = spec.world_to_cell(ahead)
+    assert np.linalg.norm(spec.cell_to_world(cell) - pose[:2]) < RADIUS  # the case, as measured
+    heading = np.array([np.cos(pose[2]), np.sin(pose[2])])
+    for inflation in (agent.inflation, 0.5 * RADIUS):
+        free = agent.traversable(np.zeros(spec.shape, bool), spec, pose, inflation)
+        r, c = spec.world_to_cell(pose[:2] + (RADIUS + RES) * heading)  # just past the footprint
+        assert not free[r, c], inflation
+        r, c = spec.world_to_cell(pose[:2] - (RADIUS + RES) * heading)
+        assert free[r, c]  # behind it stays open
