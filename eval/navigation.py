@@ -78,10 +78,13 @@ class PerceptionAStar:
     Reads ``obs["pose"]`` (x, y, yaw), ``obs["goal_rel"]`` (distance, bearing) and
     ``obs["localized"]``, and the wrapper's ``fused_map`` (its occupied cells are the obstacles)
     and ``pose_state``. Until the first localized frame of an episode (there is no pose to plan
-    from) it explores: one full turn in place, then straight ahead, turning ``bounce_turns`` to the
-    left whenever a forward step was blocked (the robot's bump sensor, the env's ``bumped``), with
-    another full turn after every ``explore_steps`` steps moved (a
-    new viewpoint each time; it used to turn and bump into the same wall for the whole episode).
+    from) it explores: one full turn in place, then straight ahead; whenever a forward step was
+    blocked (the robot's bump sensor, the env's ``bumped``) it turns to the untried heading (turns
+    are exact: headings are counted in turn steps from the start) farthest from every heading it
+    drove along, and after every ``explore_steps`` steps moved it turns once more in full (a new
+    viewpoint each time). It used to turn and bump into the same wall for the whole episode, then
+    to turn about after every bump: in a pocket that kept it on one line (home seeds 3 and 10,
+    never localized in 500 steps).
     When the pose becomes uncertain -- its position standard deviation
     (the pose state's covariance, largest axis) above ``max_sigma`` metres, or without a
     covariance (paper mode) after ``max_blind_steps`` dead-reckoned steps -- it turns in place for
@@ -94,7 +97,6 @@ class PerceptionAStar:
         max_blind_steps: int = 8,
         max_sigma: float = 0.3,
         explore_steps: int = 8,
-        bounce_turns: int = 12,
         **agent_kwargs: Any,
     ) -> None:
         self.env = env
@@ -106,7 +108,6 @@ class PerceptionAStar:
         self.max_blind_steps = int(max_blind_steps)
         self.max_sigma = float(max_sigma)
         self.explore_steps = int(explore_steps)
-        self.bounce_turns = int(bounce_turns)
         self.turns_per_circle = int(np.ceil(2.0 * np.pi / base.turn_step))
         self.reset()
 
@@ -115,9 +116,11 @@ class PerceptionAStar:
         self.seen = False  # localized at least once this episode
         self.blind = 0  # consecutive frames without localization
         self.searched = 0  # look-around turns in the current blind spell
-        self._turns_left = self.turns_per_circle  # exploration before the first fix
+        self._turns_left = self.turns_per_circle  # exploration before the first fix (< 0: right)
         self._moved = 0  # forward steps moved since the last full turn of the exploration
         self._last: Action | None = None  # the last exploration action
+        self._heading = 0  # turn steps left of the start heading, modulo a full turn
+        self._tried: set[int] = set()  # headings driven along
 
     def _uncertain(self) -> bool:
         """Whether the pose is too uncertain to drive on (see the class docstring)."""
@@ -133,16 +136,32 @@ class PerceptionAStar:
     def _explore(self) -> Action:
         """The exploration before the first fix (see the class docstring)."""
         if self._last == Action.FORWARD:
+            self._tried.add(self._heading)
             if self._blocked():
-                self._turns_left = self.bounce_turns
+                self._turns_left = self._turn_to_untried()
             else:
                 self._moved += 1
         if self._moved >= self.explore_steps:
             self._moved, self._turns_left = 0, self.turns_per_circle
-        action = Action.TURN_LEFT if self._turns_left > 0 else Action.FORWARD
-        self._turns_left -= int(action == Action.TURN_LEFT)
+        turn = int(np.sign(self._turns_left))  # +1: left, -1: right, 0: forward
+        action = {1: Action.TURN_LEFT, -1: Action.TURN_RIGHT, 0: Action.FORWARD}[turn]
+        self._turns_left -= turn
+        self._heading = (self._heading + turn) % self.turns_per_circle
         self._last = action
         return action
+
+    def _turn_to_untried(self) -> int:
+        """Signed turn steps (left > 0) to the heading farthest from every tried one (ties: the
+        fewest turns, then left); once every heading was tried, a new round from this one."""
+        n = self.turns_per_circle
+        if len(self._tried) == n:
+            self._tried = {self._heading}
+        headings = np.arange(n)
+        gap = np.abs(headings[:, None] - np.array(sorted(self._tried))[None])
+        farthest = np.minimum(gap, n - gap).min(axis=1)
+        turns = (headings - self._heading + n // 2) % n - n // 2  # in [-n/2, n/2)
+        best = max(range(n), key=lambda h: (farthest[h], -abs(turns[h]), turns[h]))
+        return int(turns[best])
 
     def act(self, obs: dict[str, Any]) -> Action:
         if int(np.asarray(obs["localized"]).reshape(-1)[0]):

@@ -7,7 +7,7 @@ import pytest
 from scipy.ndimage import distance_transform_edt
 
 from vgpnav_env.agents.astar import AStarAgent, inflate
-from vgpnav_env.grid import GridSpec
+from vgpnav_env.grid import GridSpec, shortest_path
 from vgpnav_env.robot import Action, action_path
 
 STOP, FORWARD, TURN_LEFT, TURN_RIGHT = Action
@@ -271,3 +271,53 @@ def test_a_contact_under_the_footprint_edge_still_blocks_the_way_ahead():
         assert not free[r, c], inflation
         r, c = spec.world_to_cell(pose[:2] - (RADIUS + RES) * heading)
         assert free[r, c]  # behind it stays open
+
+
+def test_contacts_where_the_robot_stood_do_not_close_the_way_it_came():
+    """Home seed 4 (A* + classical, f632d22): in a pocket north of its start the robot bumped four
+    times; the side marks of an earlier bump lay where its body then stood (0.108 m from its centre,
+    kept by a half-radius rule), the marks closed a ring around it, and for 440 steps it alternated
+    between the two headings the last bump's marks alone left open. Replayed from that episode's
+    estimated poses: (x, y) after each move or bump, with the heading of the blocked step."""
+    events = [((9.876, 5.82), None), ((9.795, 6.057), None), ((9.569, 6.17), None),
+              ((9.407, 6.306), 2.428), ((9.388, 6.324), 2.95), ((9.548, 6.519), None),
+              ((9.336, 6.561), 2.95), ((9.311, 6.566), None), ((9.291, 6.817), None),
+              ((9.191, 6.901), 2.428), ((9.191, 6.898), 0.6), ((9.191, 6.899), 2.951),
+              ((9.19, 6.899), 1.644)]  # fmt: skip
+    spec = GridSpec((-1.175, -0.975), RES, (228, 268))  # the fused map's grid of that episode
+    agent = AStarAgent(robot_radius=0.198)
+    for xy, yaw in events:
+        agent.update_contacts(np.array(xy), yaw, RES)
+    here = np.array([9.19, 6.899, 1.644])
+    marks = np.asarray(agent.blocked_points)
+    assert len(marks) >= 9 and np.linalg.norm(marks - here[:2], axis=1).min() > 0.198 - 0.06
+    free = agent.traversable(np.zeros(spec.shape, bool), spec, here)
+    assert shortest_path(free, spec, here[:2], (9.795, 6.057)) is not None  # the way back is open
+    for heading in (2.95, 1.644):  # the two bumped headings stay closed
+        ahead = here[:2] + 0.3 * np.array([np.cos(heading), np.sin(heading)])
+        r, c = spec.world_to_cell(ahead)
+        assert not free[r, c], heading
+
+
+def test_perception_agent_explores_out_of_a_pocket_before_its_first_fix():
+    """Never localized in a 1.5 m deep pocket open to the west (home seeds 3 and 10 start in one,
+    facing textureless walls): turning about after every bump kept it driving north and south
+    on one line for the whole episode; turning to the heading farthest from those tried takes it
+    out to the west."""
+    from types import SimpleNamespace
+
+    from vgpnav_env.eval.navigation import PerceptionAStar
+
+    occ, spec = room(with_wall=False)
+    occ[19:21, 40:80] = True  # pocket walls at y = 0.95-1.05 m and 2.45-2.55 m, x 2-4 m, closed at x = 4 m
+    occ[49:51, 40:80] = True
+    occ[19:51, 78:80] = True
+    base = SimpleNamespace(robot_radius=RADIUS, forward_step=0.25, turn_step=np.radians(15.0), bumped=False)
+    policy = PerceptionAStar(SimpleNamespace(unwrapped=base))
+    robot = KinematicRobot(occ, spec, (3.5, 1.75, np.pi / 2))
+    for _ in range(100):
+        action = policy.act({"pose": np.array([3.0, 3.0, 0.0]), "localized": 0})  # placeholder pose
+        before = robot.pose
+        robot.step(action)
+        base.bumped = bool(action == FORWARD and np.allclose(before, robot.pose))  # the bump sensor
+    assert np.asarray(robot.history)[:, 0].min() < 1.5 and robot.collisions <= 8, robot.collisions
