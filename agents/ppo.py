@@ -20,6 +20,10 @@ plus the localized flag (:class:`NavigationExtractor`; the absolute pose is not 
 specific), and its proprioception, the previous action and the bump sensor (``--proprioception``,
 default with a perception: :mod:`vgpnav_env.agents.proprioception`; without it a blocked step
 leaves the observation unchanged and the policy pushes into the wall until the episode ends).
+``--randomize`` (with ``--perception model``) trains on the model's randomised episodes
+(:mod:`vgpnav_env.perception.model`: the database prior's errors, long lost spells, a late first
+fix; what the pixel pipeline shows in navigation); ``--init RUN_OR_ZIP`` starts from a trained
+policy's weights (fine-tuning; its curriculum stage, no demonstrations) instead of a new one.
 Termination is Habitat's (the env's): the episode ends when the agent stops, a success only within
 the success distance. The reward is Habitat's (decrease of the geodesic distance, +2.5 on success,
 -0.01 per step) minus the distance left when it stops too far and :data:`COLLISION_PENALTY` per
@@ -188,6 +192,12 @@ def load_config(path: str | Path) -> dict[str, Any]:
     raise FileNotFoundError(f"no {CONFIG_FILE} found for {path} (expected in the training output directory)")
 
 
+def run_dir_of(model: str | Path) -> Path:
+    """The training run directory a model file belongs to (``DIR/model.zip`` or a checkpoint)."""
+    model = Path(model)
+    return next((d for d in (model.parent, model.parent.parent) if (d / CONFIG_FILE).is_file()), model.parent)
+
+
 def model_path(path: str | Path) -> Path:
     """The model file of ``path``: a ``.zip`` itself, or ``DIR/model.zip``, else the newest checkpoint."""
     path = Path(path)
@@ -210,8 +220,12 @@ def train_config(
     database_dir: str | Path | None = None,
     guidance: str | None = None,
     proprioception: bool = False,
+    randomize: bool = False,
 ) -> dict[str, Any]:
-    """The :func:`vgpnav_env.make_env` config of a training run (JSON-ready)."""
+    """The :func:`vgpnav_env.make_env` config of a training run (JSON-ready); ``randomize``: the
+    ``model`` perception's randomised episodes."""
+    if randomize and perception != "model":
+        raise ValueError("randomize applies to the model perception")
     scenes = [scenes] if isinstance(scenes, str) else list(scenes)
     defaults = {**DEFAULT_ENV_KWARGS, **PERCEPTION_ENV_KWARGS} if perception else DEFAULT_ENV_KWARGS
     kwargs = {**defaults, **(env_kwargs or {})}
@@ -223,6 +237,7 @@ def train_config(
         "database_dir": str(database_dir) if database_dir is not None else None,
         "guidance": guidance,
         "proprioception": bool(proprioception),
+        **({"wrapper": {"randomize": True}} if randomize else {}),
     }
 
 
@@ -305,12 +320,16 @@ def train_ppo(
     curriculum: bool = True,
     pretrain: int = 0,
     proprioception: bool = False,
+    randomize: bool = False,
+    init: str | Path | None = None,
 ) -> Path:
     """Train (or resume) PPO for ``steps`` total env steps on ``scene`` (one source or several);
     returns the final model path. With a ``perception`` the recipe of the module docstring
     (``guidance``: the planner's path channel; ``curriculum``: the goal-distance curriculum;
     ``pretrain``: env steps of A* demonstrations the new policy is first cloned from;
-    ``proprioception``: the previous action and the bump sensor in the observation)."""
+    ``proprioception``: the previous action and the bump sensor in the observation; ``randomize``:
+    the model perception's randomised episodes; ``init``: a trained policy (run directory or
+    ``.zip``, same observation) to start from, at its step count and curriculum stage)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import configure
@@ -339,10 +358,11 @@ def train_ppo(
     out.mkdir(parents=True, exist_ok=True)
     saved = json.loads((out / CONFIG_FILE).read_text()) if resume and (out / CONFIG_FILE).is_file() else None
     run_config = saved or {
-        "env": train_config(scene, perception, env_kwargs, database_dir, guidance, proprioception),
+        "env": train_config(scene, perception, env_kwargs, database_dir, guidance, proprioception, randomize),
         "seed": seed,
         "curriculum": bool(curriculum and perception is not None),
         "pretrain": int(pretrain),
+        **({"init": str(model_path(init))} if init is not None else {}),
     }
     if saved is None:
         (out / CONFIG_FILE).write_text(json.dumps(run_config, indent=2) + "\n")
@@ -353,6 +373,9 @@ def train_ppo(
         if ckpt is not None:
             logger.info("resuming from %s", ckpt)
             model = PPO.load(str(ckpt), env=venv, device="cpu")
+        elif run_config.get("init"):
+            logger.info("starting from %s", run_config["init"])
+            model = PPO.load(run_config["init"], env=venv, device="cpu")
         else:
             recipe = config["perception"] is not None
             ppo = {**(RECIPE_PPO_KWARGS if recipe else DEFAULT_PPO_KWARGS), **(ppo_kwargs or {})}
@@ -369,7 +392,7 @@ def train_ppo(
                 obs, actions = demonstrations(config, pretrain, seed)
                 loss = behaviour_clone(model, obs, actions)
                 logger.info("cloned %d A* steps: final loss %.3f", len(actions), loss)
-        if ckpt is not None:
+        if ckpt is not None or run_config.get("init"):
             keep_progress(out, model.num_timesteps)
         model.set_logger(configure(str(out / "tb"), ["tensorboard", "csv"]))
         remaining = steps - model.num_timesteps
@@ -382,9 +405,12 @@ def train_ppo(
             callbacks = [checkpoints, SuccessLogger()]
             if run_config.get("curriculum"):
                 stage = curriculum_stage(out) if ckpt is not None else None
+                if ckpt is None and run_config.get("init"):
+                    stage = curriculum_stage(run_dir_of(run_config["init"]))
                 callbacks.append(GoalCurriculum() if stage is None else GoalCurriculum(start=stage))
             callback = CallbackList(callbacks)
-            model.learn(remaining, callback=callback, reset_num_timesteps=ckpt is None)
+            fresh = ckpt is None and not run_config.get("init")
+            model.learn(remaining, callback=callback, reset_num_timesteps=fresh)
             model.save(str(out / "checkpoints" / f"ppo_{model.num_timesteps}_steps"))
         model.save(str(out / MODEL_FILE))
     finally:
@@ -522,6 +548,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--perception: in it)",
     )
     parser.add_argument(
+        "--randomize",
+        action="store_true",
+        help="with --perception model: its randomised episodes (database prior errors, long lost "
+        "spells, a late first fix: the pixel pipeline's statistics in navigation)",
+    )
+    parser.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="start from this trained policy (run directory or .zip; same observation) instead of "
+        "a new one: fine-tuning, no demonstrations",
+    )
+    parser.add_argument(
         "--resume",
         action="store_true",
         help="continue from the newest checkpoint (with the run's saved config and curriculum stage)",
@@ -553,6 +592,13 @@ def run(args: argparse.Namespace) -> int:
     recipe = args.perception is not None
     guidance = (RECIPE_GUIDANCE if recipe else None) if args.guidance is None else args.guidance
     pretrain = (RECIPE_PRETRAIN if recipe else 0) if args.pretrain is None else args.pretrain
+    if args.randomize and args.perception != "model":
+        raise ValueError("--randomize needs --perception model")
+    if args.init is not None and args.resume:
+        raise ValueError("--init starts a new run from a policy; --resume continues this run: give one")
+    if args.init is not None:
+        model_path(args.init)  # a one-line error before anything is written
+        pretrain = 0
     if args.database is not None and len(args.scene) > 1:
         raise ValueError("--database names one scene's build: give one scene")
     path = train_ppo(
@@ -569,6 +615,8 @@ def run(args: argparse.Namespace) -> int:
         curriculum=args.curriculum,
         pretrain=pretrain,
         proprioception=recipe and args.proprioception,
+        randomize=args.randomize,
+        init=args.init,
     )
     if args.perception is not None:
         print(f"learning curve: {plot_learning_curve(args.out)}")

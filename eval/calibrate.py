@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,14 @@ from vgpnav_env.eval.perception_runs import (
     query_records,
 )
 from vgpnav_env.eval.workers import add_worker_arguments, workers_from_args
-from vgpnav_env.perception.model import PerceptionModel, fit_model, median_depth
+from vgpnav_env.perception.model import (
+    PerceptionModel,
+    PriorErrors,
+    base_cells,
+    fit_model,
+    fit_prior_errors,
+    median_depth,
+)
 from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.runs import load_run_depth, read_run_meta
 
@@ -39,7 +47,23 @@ def calibrate(
     stride = OccupancyConfig().point_stride
     sampled = -(-meta["width"] // stride) * -(-meta["height"] // stride)
     info = {"build": str(build_dir), "image size": f"{meta['width']}x{meta['height']}", **(source or {})}
-    return fit_model(records, medians, sampled, source=info)
+    return replace(
+        fit_model(records, medians, sampled, source=info), prior_errors=database_prior_errors(build_dir)
+    )
+
+
+def database_prior_errors(build_dir: str | Path) -> PriorErrors | None:
+    """:class:`PriorErrors` of the prior map of ``build_dir``'s database (computed and cached on
+    first use) against the ground truth of the base layout; None without a prior."""
+    from vgpnav_env.perception.database import open_database
+    from vgpnav_env.robot import ROBOT_HEIGHT, ROBOT_RADIUS
+
+    prior = open_database(build_dir).prior
+    if prior is None:
+        return None
+    scene = read_run_meta(Path(build_dir) / "database")["scene"]
+    free, obstacle = base_cells(scene, prior.spec, ROBOT_RADIUS, ROBOT_HEIGHT)
+    return fit_prior_errors(prior.probability(), free, obstacle, prior.spec.resolution)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,4 +110,12 @@ def run(args: argparse.Namespace) -> int:
         f"{np.exp(model.log_translation[0]):.4f} m / {np.exp(model.log_rotation[0]):.3f} deg"
     )
     print(f"  depth noise {model.depth_noise_m:.3f} m, coverage {model.coverage:.2f}")
+    if model.prior_errors is not None:
+        e = model.prior_errors
+        print(
+            f"  database prior: free cells occupied {np.round(e.free_occupied, 3).tolist()} / unknown "
+            f"{np.round(e.free_unknown, 3).tolist()} by distance to an obstacle (edges {e.free_edges} m); "
+            f"obstacle cells occupied {np.round(e.obstacle_occupied, 3).tolist()} / unknown "
+            f"{np.round(e.obstacle_unknown, 3).tolist()} by distance to free space"
+        )
     return 0

@@ -163,3 +163,38 @@ def test_behaviour_cloning_fits_the_demonstrated_actions():
     model = PPO("MultiInputPolicy", venv, policy_kwargs={"features_extractor_class": NavigationExtractor})
     assert behaviour_clone(model, obs, actions, epochs=30) < 0.9
     venv.close()
+
+
+def test_init_fine_tunes_a_trained_policy_on_randomised_model_episodes(tmp_path):
+    """``init``: a new run starts from a trained policy's weights at its step count, no
+    demonstrations; ``randomize`` puts the model's randomised episodes in the run's config."""
+    import numpy as np
+    from stable_baselines3 import PPO
+
+    kwargs = {"env_kwargs": {"image_size": (40, 30), "max_steps": 20}, "ppo_kwargs": {"n_steps": 64}}
+    first = train_ppo("home", 64, tmp_path / "a", n_envs=1, perception="model", proprioception=True, **kwargs)
+    path = train_ppo(
+        "home",
+        128,
+        tmp_path / "b",
+        n_envs=1,
+        perception="model",
+        proprioception=True,
+        randomize=True,
+        init=first,
+        **kwargs,
+    )
+    config = load_config(path)
+    assert config["env"]["wrapper"] == {"randomize": True} and config["init"] == str(first)
+    assert config["pretrain"] == 0
+    # It continued from the init's 64 steps: its first rollout ends at 128 (a new run's at 64).
+    rows = (tmp_path / "b" / "tb" / "progress.csv").read_text().splitlines()
+    steps = rows[0].split(",").index("time/total_timesteps")
+    assert int(rows[1].split(",")[steps]) == 128
+    a, b = PPO.load(str(first), device="cpu"), PPO.load(str(path), device="cpu")
+    moved = [
+        not np.array_equal(x, y) for x, y in zip(a.policy.parameters(), b.policy.parameters(), strict=True)
+    ]
+    assert b.num_timesteps == 128 and any(moved)
+    with pytest.raises(ValueError, match="randomize applies to the model perception"):
+        train_ppo("home", 64, tmp_path / "c", perception="simulated", randomize=True)

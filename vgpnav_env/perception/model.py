@@ -26,6 +26,16 @@ those frames. :class:`ModelObservation` then replaces the pixel pipeline of
   from the ground truth of the database's ``base`` layout clamped to +-2 (an idealised database
   prior; the pixel wrapper's prior is reconstructed from the database images).
 
+- **Randomised** (``randomize=True``, a training-time option; the evaluation default is off): the
+  statistics of the pixel wrapper in navigation, which differ from the query-run calibration. The
+  prior is the ground truth degraded per episode by the fitted errors of the database prior
+  (:class:`PriorErrors`: obstacles near free space missed or hollow, phantom obstacles along
+  walls, unknown cells), in spatially correlated blobs; each episode draws a lost regime (the lost
+  probabilities scaled by up to :data:`MAX_LOST_FACTOR`, the stickiness up to
+  :data:`MAX_STICKINESS`: pixel navigation lost 1-100 % of an episode's frames, in spells of tens
+  of steps); an episode whose first frame is lost starts without an estimate (the pixel wrapper's
+  placeholder at the map centre, yaw 0, until the first fix).
+
 Everything privileged (true pose, rendered depth, ground-truth prior) comes from the env; the name
 says so. Same seed (``reset(seed=...)``), same draws. The default fit
 (``data/model_classical_home.json``) ships with the package; see its ``source`` for the command.
@@ -58,6 +68,88 @@ DEFAULT_FIT = "model_classical_home.json"
 PRIOR_LOGODDS = 2.0
 #: Median depth of a view that sees nothing (metres).
 NO_DEPTH = 10.0
+#: Randomised episodes (``randomize=True``): the largest factor on the lost probabilities and the
+#: largest stickiness an episode draws (log-uniform from 1 and uniform from the fit's).
+MAX_LOST_FACTOR = 4.0
+MAX_STICKINESS = 0.95
+#: The lost probability a randomised episode never exceeds.
+MAX_LOST_PROBABILITY = 0.95
+
+
+@dataclass(frozen=True)
+class PriorErrors:
+    """How the database prior's labels (free / unknown / occupied) err against the ground truth of
+    the base layout, fitted by :func:`fit_prior_errors`: for free cells by their distance to the
+    nearest obstacle (bins at ``free_edges`` m), for obstacle cells by their distance to the nearest
+    free cell (``obstacle_edges`` m), the probabilities of the occupied and of the unknown label;
+    ``correlation_cells``: the Gaussian smoothing (cells of the fitted map) that makes the drawn
+    errors blobs."""
+
+    free_edges: list[float]
+    free_occupied: list[float]
+    free_unknown: list[float]
+    obstacle_edges: list[float]
+    obstacle_occupied: list[float]
+    obstacle_unknown: list[float]
+    correlation_cells: float = 1.0
+
+    def draw(
+        self,
+        free: NDArray[np.bool_],
+        obstacle: NDArray[np.bool_],
+        resolution: float,
+        rng: np.random.Generator,
+    ) -> NDArray[np.float32]:
+        """Prior log-odds (+-:data:`PRIOR_LOGODDS`, 0 unknown) of a map with ground-truth ``free``
+        and ``obstacle`` cells (``resolution`` m): every cell's label drawn from its bin's
+        probabilities by a spatially correlated uniform field; other cells unknown."""
+        from scipy import ndimage, special
+
+        field = ndimage.gaussian_filter(rng.standard_normal(free.shape), self.correlation_cells)
+        u = special.ndtr(field / max(float(field.std()), 1e-9))  # uniform marginals, blobby
+        out = np.zeros(free.shape, np.float32)
+        for cells, dist, edges, p_occ, p_unk in (
+            (free, ndimage.distance_transform_edt(~obstacle), self.free_edges, self.free_occupied,
+             self.free_unknown),
+            (obstacle, ndimage.distance_transform_edt(~free), self.obstacle_edges,
+             self.obstacle_occupied, self.obstacle_unknown),
+        ):  # fmt: skip
+            b = np.searchsorted(edges, dist * resolution, side="right")
+            occ, unk = np.asarray(p_occ)[b], np.asarray(p_unk)[b]
+            out[cells & (u < occ)] = PRIOR_LOGODDS
+            out[cells & (u >= occ + unk)] = -PRIOR_LOGODDS
+        return out
+
+
+def fit_prior_errors(
+    probability: NDArray[np.float64],
+    free: NDArray[np.bool_],
+    obstacle: NDArray[np.bool_],
+    resolution: float,
+    free_edges: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5),
+    obstacle_edges: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5),
+    occupied: float = 0.65,
+    free_below: float = 0.35,
+) -> PriorErrors:
+    """:class:`PriorErrors` of a prior map's occupancy ``probability`` against the ground truth
+    ``free`` and ``obstacle`` cells of the same grid (``resolution`` m); labels as the observation's
+    crop draws them (occupied above ``occupied``, free below ``free_below``)."""
+    from scipy import ndimage
+
+    if not (probability.shape == free.shape == obstacle.shape):
+        raise ValueError("probability, free and obstacle must be grids of one shape")
+    occ, unk = probability > occupied, (probability >= free_below) & (probability <= occupied)
+
+    def rates(cells: NDArray[np.bool_], dist: NDArray[np.float64], edges: tuple[float, ...]):
+        b = np.searchsorted(edges, dist, side="right")
+        n = np.bincount(b[cells], minlength=len(edges) + 1).astype(float)
+        k_occ = np.bincount(b[cells], weights=occ[cells], minlength=len(edges) + 1)
+        k_unk = np.bincount(b[cells], weights=unk[cells], minlength=len(edges) + 1)
+        return [float(x) for x in k_occ / np.maximum(n, 1)], [float(x) for x in k_unk / np.maximum(n, 1)]
+
+    free_occ, free_unk = rates(free, ndimage.distance_transform_edt(~obstacle) * resolution, free_edges)
+    obs_occ, obs_unk = rates(obstacle, ndimage.distance_transform_edt(~free) * resolution, obstacle_edges)
+    return PriorErrors(list(free_edges), free_occ, free_unk, list(obstacle_edges), obs_occ, obs_unk)
 
 
 @dataclass(frozen=True)
@@ -75,6 +167,7 @@ class PerceptionModel:
     depth_noise_m: float
     coverage: float  # fraction of the sampled pixels that give a point
     source: dict[str, Any] = field(default_factory=dict)
+    prior_errors: PriorErrors | None = None  # the database prior's (randomised episodes)
 
     def __post_init__(self) -> None:
         if len(self.p_lost) != len(self.depth_edges) + 1:
@@ -84,9 +177,15 @@ class PerceptionModel:
         if len(self.gross_translation_m) != len(self.gross_rotation_deg):
             raise ValueError("gross translation and rotation errors must pair up")
 
-    def lost_probability(self, median_depth: float, lost_before: bool) -> float:
+    def lost_probability(
+        self, median_depth: float, lost_before: bool, factor: float = 1.0, stickiness: float | None = None
+    ) -> float:
+        """This frame's lost probability; ``factor`` scales the bin's (capped at
+        :data:`MAX_LOST_PROBABILITY`), ``stickiness`` replaces the fit's (randomised episodes)."""
         p = self.p_lost[int(np.searchsorted(self.depth_edges, median_depth, side="right"))]
-        return self.stickiness * float(lost_before) + (1.0 - self.stickiness) * p
+        p = min(p * factor, MAX_LOST_PROBABILITY) if factor != 1.0 else p
+        stick = self.stickiness if stickiness is None else stickiness
+        return stick * float(lost_before) + (1.0 - stick) * p
 
     def pose_error(self, rng: np.random.Generator) -> tuple[float, float]:
         """(translation m, rotation deg) of one localized frame."""
@@ -117,6 +216,8 @@ class PerceptionModel:
         data = json.loads(text)
         data["log_translation"] = tuple(data["log_translation"])
         data["log_rotation"] = tuple(data["log_rotation"])
+        if data.get("prior_errors") is not None:
+            data["prior_errors"] = PriorErrors(**data["prior_errors"])
         return cls(**data)
 
 
@@ -192,11 +293,13 @@ def fit_model(
     )
 
 
-def prior_map(source: str, spec: GridSpec, robot_radius: float, robot_height: float) -> NDArray[np.float32]:
-    """Log-odds (``spec.shape``) of the ground truth of ``source``'s ``base`` layout: obstacles
-    +:data:`PRIOR_LOGODDS`, free cells -:data:`PRIOR_LOGODDS`, else 0 (cached per process)."""
+def base_cells(
+    source: str, spec: GridSpec, robot_radius: float, robot_height: float
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(free, obstacle) cells of the grid ``spec`` in the ground truth of ``source``'s ``base``
+    layout (nearest cell; cached per process)."""
     key = (source, spec, robot_radius, robot_height)
-    if key not in _PRIORS:
+    if key not in _BASE:
         from vgpnav_env.groundtruth import ground_truth_map
         from vgpnav_env.scenes import load_scene
 
@@ -205,14 +308,21 @@ def prior_map(source: str, spec: GridSpec, robot_radius: float, robot_height: fl
         cells = gt.spec.world_to_cell(spec.cell_to_world(np.stack([rows, cols], axis=-1)))
         inside = gt.spec.contains(cells)
         r, c = cells[..., 0].clip(0, gt.spec.shape[0] - 1), cells[..., 1].clip(0, gt.spec.shape[1] - 1)
-        prior = np.zeros(spec.shape, np.float32)
-        prior[inside & gt.free[r, c]] = -PRIOR_LOGODDS
-        prior[inside & gt.obstacle[r, c]] = PRIOR_LOGODDS
-        _PRIORS[key] = prior
-    return _PRIORS[key]
+        _BASE[key] = (inside & gt.free[r, c], inside & gt.obstacle[r, c])
+    return _BASE[key]
 
 
-_PRIORS: dict[tuple, NDArray[np.float32]] = {}
+_BASE: dict[tuple, tuple[NDArray[np.bool_], NDArray[np.bool_]]] = {}
+
+
+def prior_map(source: str, spec: GridSpec, robot_radius: float, robot_height: float) -> NDArray[np.float32]:
+    """Log-odds (``spec.shape``) of the ground truth of ``source``'s ``base`` layout: obstacles
+    +:data:`PRIOR_LOGODDS`, free cells -:data:`PRIOR_LOGODDS`, else 0."""
+    free, obstacle = base_cells(source, spec, robot_radius, robot_height)
+    prior = np.zeros(spec.shape, np.float32)
+    prior[free] = -PRIOR_LOGODDS
+    prior[obstacle] = PRIOR_LOGODDS
+    return prior
 
 
 class ModelPoseState:
@@ -258,7 +368,9 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """``model`` perception (PRIVILEGED, module docstring) over ``VGPNav/PointGoal-v0``: the
     observation space, ``info`` entries and ``fused_map`` of :class:`~vgpnav_env.wrappers.VGPNavObservation`.
 
-    ``fit``: a fit file (default: the shipped one) or a :class:`PerceptionModel`.
+    ``fit``: a fit file (default: the shipped one) or a :class:`PerceptionModel`; ``randomize``:
+    the randomised episodes of the module docstring (training; needs a fit with ``prior_errors``
+    for the prior, draws the lost regime and the missing first estimate without).
     """
 
     perception_mode = "model"
@@ -272,6 +384,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         map_resolution: float = 0.1,
         point_stride: int = 4,
         prior: bool = True,
+        randomize: bool = False,
     ) -> None:
         from vgpnav_env.wrappers import navigation_space
 
@@ -282,6 +395,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             map_resolution=map_resolution,
             point_stride=point_stride,
             prior=prior,
+            randomize=randomize,
         )
         gym.Wrapper.__init__(self, env)
         base = env.unwrapped
@@ -295,17 +409,24 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.observation_space = navigation_space(base, int(map_size))
         self._occ = OccupancyConfig()
         spec = base.ground_truth.spec
-        self._prior = (
-            prior_map(base.scene_source, spec, base.robot_radius, base.world.gt.robot_height)
-            if prior and base.scene_source is not None
-            else np.zeros(spec.shape, np.float32)
+        self.randomize = bool(randomize)
+        known = prior and base.scene_source is not None
+        self._base = (
+            base_cells(base.scene_source, spec, base.robot_radius, base.world.gt.robot_height)
+            if known
+            else None
         )
+        self._prior = np.zeros(spec.shape, np.float32)
+        if self._base is not None:
+            self._prior[self._base[0]], self._prior[self._base[1]] = -PRIOR_LOGODDS, PRIOR_LOGODDS
         self.fused_map = LogOddsMap(spec, self._occ.l_free, self._occ.l_occ, self._occ.clamp)
         self._rays = self._sampled_rays(base.camera)
         self.rng = np.random.default_rng(0)
         self.estimate = np.zeros(3)
         self._lost = False
         self._true = np.zeros(3)
+        self._factor, self._stickiness = 1.0, None  # this episode's lost regime
+        self.has_estimate = True
         self.measurements = Measurements("estimate")
         self.pose_state = ModelPoseState(self.model.fix_covariance())
 
@@ -315,19 +436,31 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
         self.rng = np.random.default_rng(self.env.unwrapped.np_random.integers(2**63))
-        self.fused_map.logodds = self._prior.copy()
         self._true = np.asarray(info["pose"], float)
-        self._lost = False
+        self._lost = self.randomize  # randomised: the first fix is drawn as if lost before it
         self.estimate = self._true.copy()  # the robot initialises standing still where it starts
+        self.has_estimate = True
+        self.fused_map.logodds = self._prior.copy()
+        if self.randomize:
+            m, rng = self.model, self.rng
+            self._factor = float(np.exp(rng.uniform(0.0, np.log(MAX_LOST_FACTOR))))
+            self._stickiness = float(rng.uniform(m.stickiness, MAX_STICKINESS))
+            if m.prior_errors is not None and self._base is not None:
+                spec = self.fused_map.spec
+                self.fused_map.logodds = m.prior_errors.draw(*self._base, spec.resolution, rng)
+            self.has_estimate = False  # until the first fix (_perceive)
+            self.estimate = np.array([*self.fused_map.spec.centre, 0.0])
         return self._observe(obs, info, action=None)
 
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
         true = np.asarray(info["pose"], float)
-        # Odometry: the true relative motion of this step, applied to the estimate.
-        dx, dy = true[:2] - self._true[:2]
+        # Odometry: the true relative motion of this step, applied to the estimate (before the
+        # first fix of a randomised episode the placeholder stays, as the pixel wrapper's).
+        dx, dy = (true[:2] - self._true[:2]) * self.has_estimate
         c, s = np.cos(self.estimate[2] - self._true[2]), np.sin(self.estimate[2] - self._true[2])
-        self.estimate = self.estimate + np.array([c * dx - s * dy, s * dx + c * dy, true[2] - self._true[2]])
+        turn = (true[2] - self._true[2]) * self.has_estimate
+        self.estimate = self.estimate + np.array([c * dx - s * dy, s * dx + c * dy, turn])
         self.estimate[2] = wrap_angle(self.estimate[2])
         self._true = true
         new_obs, info = self._observe(obs, info, action=action)
@@ -338,9 +471,11 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         m, rng = self.model, self.rng
         d = depth[:: self.point_stride, :: self.point_stride].reshape(-1)
         valid = np.isfinite(d) & (d > 0) & (d <= self._occ.max_depth)
-        self._lost = bool(rng.random() < m.lost_probability(median_depth(d), self._lost))
+        p = m.lost_probability(median_depth(d), self._lost, self._factor, self._stickiness)
+        self._lost = bool(rng.random() < p)
         if self._lost:
             return False
+        self.has_estimate = True
         t, r = m.pose_error(rng)
         heading = rng.uniform(0.0, 2.0 * np.pi)
         sign = 1.0 if rng.random() < 0.5 else -1.0
@@ -372,7 +507,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         new_obs = navigation_observation(
             self.observation_space, self.estimate, obs["goal"], self.fused_map, localized, self.map_resolution
         )
-        state = EstimateState(new_obs["pose"], localized, self._true)
+        state = EstimateState(new_obs["pose"], localized, self._true, has_estimate=self.has_estimate)
         (self.measurements.reset if action is None else self.measurements.update)(state)
         info = dict(info)
         info.update(
