@@ -597,7 +597,10 @@ def run(args: argparse.Namespace) -> int:
     if args.init is not None and args.resume:
         raise ValueError("--init starts a new run from a policy; --resume continues this run: give one")
     if args.init is not None:
-        model_path(args.init)  # a one-line error before anything is written
+        try:
+            model_path(args.init)  # a one-line error before anything is written
+        except FileNotFoundError as e:
+            raise ValueError(f"--init: {e}") from None
         pretrain = 0
     if args.database is not None and len(args.scene) > 1:
         raise ValueError("--database names one scene's build: give one scene")
