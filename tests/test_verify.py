@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from vgpnav_env.geometry import PinholeCamera, camera_pose
+from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionResult
 from vgpnav_env.perception.scale_recovery import GroundAnchor, ScaleEstimate
@@ -16,6 +16,7 @@ from vgpnav_env.perception.verify import (
     check_height,
     check_scale,
     epipolar_support,
+    explained_confidence,
     off_plane_matches,
     verify_pose,
 )
@@ -238,9 +239,47 @@ def test_one_reference_confirms_a_place_only_with_single_reference_support_match
             T_a, T_wi, out, CAMERA, VerifyConfig(single_reference_support=single), rivals=[T_b]
         )
         assert verdict.ok and verdict.rival_strength == 0, verdict.detail
-    # As the pose, B's single pair confirms it only with single_reference_support matches.
-    alone = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig(single_reference_support=lone))
+    # As the pose, B's single pair confirms it only with single_reference_support matches (with
+    # the explained-confidence gate off: A's two pairs, as confident, do not explain it)...
+    free = VerifyConfig(single_reference_support=lone, min_explained_confidence=None)
+    alone = verify_pose(T_b, T_wi, out, CAMERA, free)
     assert alone.ok and alone.n_supporting == 1 and alone.strength == lone
     for single in (lone + 1, None):
-        alone = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig(single_reference_support=single))
+        alone = verify_pose(T_b, T_wi, out, CAMERA, replace(free, single_reference_support=single))
         assert alone.reason == "unverified" and "1 reference(s)" in alone.detail
+    # ...and the gate rejects it: one third of the pairs' confidence.
+    gated = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig(single_reference_support=lone))
+    assert gated.reason == "unverified" and "33% of the pairs' confidence" in gated.detail
+
+
+def test_a_pose_the_most_confident_pairs_do_not_explain_is_rejected() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    # Each pair's own geometry is the true one (room B's references see room A's view from their
+    # camera); room A's pairs are confident (0.9), room B's weak (0.2).
+    T_qi = invert_pose(T_a) @ np.concatenate([T_wi[:3], T_wi[:3]])
+    out = replace(out, T_qi=T_qi, confidence=np.r_[np.full(3, 0.9), np.full(3, 0.2)])
+    config = VerifyConfig()
+    assert config.min_explained_confidence == 0.45
+    # Room A's pose explains room A's pairs in full: 3 x 0.9 of 3.3; room B's pose only B's pairs.
+    assert explained_confidence(T_a, T_wi, out, CAMERA, config) == pytest.approx(2.7 / 3.3, abs=0.03)
+    assert explained_confidence(T_b, T_wi, out, CAMERA, config) == pytest.approx(0.6 / 3.3, abs=0.03)
+    assert verify_pose(T_a, T_wi, out, CAMERA, config).ok
+    # Room B's weak pairs alone confirm its pose, but the confident pairs see another place.
+    wrong = verify_pose(T_b, T_wi, out, CAMERA, config)
+    assert not wrong.ok and wrong.reason == "unverified" and "18% of the pairs' confidence" in wrong.detail
+    assert verify_pose(T_b, T_wi, out, CAMERA, replace(config, min_explained_confidence=None)).ok
+    # A pair counts by the share of its own geometry's matches the pose explains: a pose 10 deg
+    # of yaw off keeps few of room A's matches.
+    turned = camera_pose(T_a[:3, 3], np.deg2rad(55.0), np.deg2rad(20.0))
+    assert explained_confidence(turned, T_wi[:3], replace_first(out, 3), CAMERA, config) < 0.2
+    assert explained_confidence(T_a, T_wi, replace(out, confidence=np.zeros(6)), CAMERA, config) == 0.0
+    with pytest.raises(ValueError, match="min_explained_confidence"):
+        VerifyConfig(min_explained_confidence=0.0)
+
+
+def replace_first(out: BackboneOutput, k: int) -> BackboneOutput:
+    """``out`` restricted to its first ``k`` pairs."""
+    return replace(
+        out, T_qi=out.T_qi[:k], confidence=out.confidence[:k], n_matches=out.n_matches[:k],
+        scale_valid=out.scale_valid[:k], matches=out.matches[:k],
+    )  # fmt: skip
