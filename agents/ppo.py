@@ -392,8 +392,10 @@ def train_ppo(
                 obs, actions = demonstrations(config, pretrain, seed)
                 loss = behaviour_clone(model, obs, actions)
                 logger.info("cloned %d A* steps: final loss %.3f", len(actions), loss)
-        if ckpt is not None or run_config.get("init"):
+        if ckpt is not None:
             keep_progress(out, model.num_timesteps)
+        elif run_config.get("init"):
+            copy_progress(run_dir_of(run_config["init"]), out, model.num_timesteps)
         model.set_logger(configure(str(out / "tb"), ["tensorboard", "csv"]))
         remaining = steps - model.num_timesteps
         if remaining > 0:
@@ -451,6 +453,22 @@ def keep_progress(run_dir: str | Path, resumed_at: int) -> None:
     current.unlink()
 
 
+def copy_progress(source: str | Path, run_dir: str | Path, until: int) -> None:
+    """Copy the logged rows of the ``source`` run (up to ``until`` steps, where a run started from
+    its policy begins) into ``run_dir``'s ``tb/progress_<steps>.csv`` files, so that the new run's
+    learning curve continues the source's."""
+    import shutil
+
+    tb = Path(run_dir) / "tb"
+    tb.mkdir(parents=True, exist_ok=True)
+    for path in (Path(source) / "tb").glob("progress_*.csv"):
+        if int(path.stem.split("_")[1]) <= until:
+            shutil.copy(path, tb / path.name)
+    if (Path(source) / "tb" / "progress.csv").is_file():
+        shutil.copy(Path(source) / "tb" / "progress.csv", tb / "progress.csv")
+        keep_progress(run_dir, until)
+
+
 def curriculum_stage(run_dir: str | Path) -> float | None:
     """The last logged ``curriculum/max_geodesic`` of a run (None if none was logged)."""
     key = "curriculum/max_geodesic"
@@ -461,8 +479,8 @@ def curriculum_stage(run_dir: str | Path) -> float | None:
 def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Success rate and SPL, and the episode return (Habitat's reward, before :class:`EndPenalty`),
     means over the last 100 episodes, against env steps, from the run's ``tb/progress*.csv``
-    (dotted lines: where the run was resumed);
-    written to ``out`` (default ``RUN/learning_curve.png``)."""
+    (dotted lines: where the run was resumed, or started from its ``init`` policy, whose rows
+    :func:`copy_progress` copied in); written to ``out`` (default ``RUN/learning_curve.png``)."""
     import textwrap
 
     from matplotlib.figure import Figure
@@ -489,6 +507,10 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     guided += ", proprioception" if config.get("proprioception") else ""
     run = load_config(run_dir)
     cloned = f", cloned from {run['pretrain']} A* steps" if run.get("pretrain") else ""
+    if run.get("init"):
+        cloned += f", from {Path(run['init']).stem}"
+    if (config.get("wrapper") or {}).get("randomize"):
+        cloned += ", randomised episodes"
     where = scenes[0] if len(scenes) == 1 else f"{scenes[0]} + {len(scenes) - 1} scenes"
     ax.set(ylabel="mean, last 100 episodes", ylim=(0, 1))
     title = f"PPO, {config['perception']} perception{guided}{cloned}, {where}"

@@ -191,6 +191,7 @@ def test_init_fine_tunes_a_trained_policy_on_randomised_model_episodes(tmp_path)
     rows = (tmp_path / "b" / "tb" / "progress.csv").read_text().splitlines()
     steps = rows[0].split(",").index("time/total_timesteps")
     assert int(rows[1].split(",")[steps]) == 128
+    assert (tmp_path / "b" / "tb" / "progress_000000064.csv").is_file()  # the init's rows: one curve
     a, b = PPO.load(str(first), device="cpu"), PPO.load(str(path), device="cpu")
     moved = [
         not np.array_equal(x, y) for x, y in zip(a.policy.parameters(), b.policy.parameters(), strict=True)
