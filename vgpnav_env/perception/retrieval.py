@@ -423,7 +423,11 @@ class RetrievalConfig:
     retrieval recall 0.946 -> 0.940 / 0.876 -> 0.912, gross errors 9 -> 5 / 26 -> 20, lost
     19.6 -> 20.1 % / 33.2 -> 34.4 %, recall at 5 cm / 5 deg 0.728 -> 0.755 / 0.589 -> 0.589,
     CPU s per frame 0.36 -> 0.48 / 0.43 -> 0.56; on the tiny test room (one wall texture) it
-    chose aliased walls and lost more frames. Not better everywhere, so off by default.
+    chose aliased walls and lost more frames. With the verification of main at 5bc1b49, 40 on all
+    queries of home:3 / hospital:1 / hospital:2: gross 4 -> 3 / 9 -> 11 / 11 -> 18, lost 16.4 ->
+    21.4 / 20.8 -> 23.9 / 15.2 -> 20.6 %, recall at 5 cm / 5 deg 0.786 -> 0.750 / 0.745 -> 0.702 /
+    0.808 -> 0.736, 0.60-0.62 CPU s per frame (hospital gross 13 -> 7). Not better everywhere, so
+    off by default.
     """
 
     k: int = 10
