@@ -303,6 +303,7 @@ class AStarAgent:
             marks = xy + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
             visited = np.asarray(self._visited)
             covered = np.linalg.norm(marks[:, None] - visited[None], axis=-1).min(axis=1) <= clear
+            covered &= self.contact_arc != 0.0  # the heading that bumped stays closed from here
             self.blocked_points.extend(marks[~covered])
             self._marks.extend((self._bumps, bool(a == 0.0)) for a in self.contact_arc[~covered])
 

@@ -342,3 +342,23 @@ def test_bumps_in_every_direction_leave_the_ways_between_their_headings_open():
         bearing = np.arctan2(step[1], step[0])
         off = np.abs(np.angle(np.exp(1j * (bearing - headings))))
         assert np.degrees(off.min()) > 20.0, (goal, np.degrees(bearing))
+
+
+def test_a_bump_marks_the_way_ahead_even_where_the_robot_stood_before():
+    """Home seed 4 (5325a7b + 8eac215): back at (9.3, 6.57) the robot bumped heading south on the
+    corner of a box its map did not hold; the point straight ahead lay where its body had stood 20
+    steps earlier, so no mark closed that heading, the tight plan kept leading south past the side
+    mark, and it pushed 30 times in a row. The straight-ahead mark is always kept."""
+    spec = GridSpec((-1.175, -0.975), RES, (228, 268))
+    agent = AStarAgent(robot_radius=0.198)
+    for xy, yaw in [((9.569, 6.17), None), ((9.407, 6.306), 2.428), ((9.388, 6.324), 2.95),
+                    ((9.548, 6.519), None), ((9.336, 6.561), 2.95), ((9.3, 6.57), None)]:  # fmt: skip
+        agent.update_contacts(np.array(xy), yaw, RES)
+    here = np.array([9.3, 6.57, -1.5])
+    agent.update_contacts(here[:2], here[2], RES)
+    heading = np.array([np.cos(here[2]), np.sin(here[2])])
+    ahead = here[:2] + (0.198 + 0.5 * RES) * heading
+    assert np.linalg.norm(np.asarray(agent.blocked_points) - ahead, axis=1).min() < 1e-9
+    free = agent.traversable(np.zeros(spec.shape, bool), spec, here, 0.5 * 0.198)
+    r, c = spec.world_to_cell(here[:2] + (0.198 + RES) * heading)  # just past the footprint
+    assert not free[r, c]
