@@ -111,8 +111,8 @@ class AStarAgent:
         self._along: NDArray[np.float64] | None = None
         self._free: NDArray[np.bool_] | None = None
         self._spec: GridSpec | None = None
-        self.blocked_points: list[NDArray[np.float64]] = []
-        self._marks: list[tuple[int, bool]] = []  # per contact point: its bump, whether straight ahead
+        # contact points (world x, y in m), each with its bump's number and whether straight ahead
+        self._contacts: list[tuple[NDArray[np.float64], int, bool]] = []
         self._bumps = 0
         self._visited: deque[NDArray[np.float64]] = deque(maxlen=self.contact_memory)
         self.replans = 0
@@ -124,6 +124,12 @@ class AStarAgent:
         self._since_plan = 0
 
     # -- planning --------------------------------------------------------------------------
+
+    @property
+    def blocked_points(self) -> list[NDArray[np.float64]]:
+        """The contact points (world x, y in m) the plan treats as obstacles."""
+        return [p for p, _, _ in self._contacts]
+
     def traversable(
         self,
         obstacles: NDArray[np.bool_],
@@ -180,10 +186,8 @@ class AStarAgent:
         self.replans += 1
         tight = 0.5 * self.robot_radius
         empty = np.zeros_like(obstacles)
-        ahead = [p for p, (_, straight) in zip(self.blocked_points, self._marks, strict=True) if straight]
-        last = [
-            p for p, (bump, _) in zip(self.blocked_points, self._marks, strict=True) if bump == self._bumps
-        ]
+        ahead = [p for p, _, straight in self._contacts if straight]
+        last = [p for p, bump, _ in self._contacts if bump == self._bumps]
         # Straight-ahead marks before the last bump's alone: home seeds 14 and 17 (A* + classical,
         # f632d22) alternated for 300 steps between two bumped headings, each bump's marks leaving
         # open the heading of the other.
@@ -293,9 +297,7 @@ class AStarAgent:
         xy = np.asarray(xy, float)
         self._visited.append(xy)
         clear = self.contact_clearance
-        kept = [np.linalg.norm(p - xy) > clear for p in self.blocked_points]
-        self.blocked_points = [p for p, k in zip(self.blocked_points, kept, strict=True) if k]
-        self._marks = [m for m, k in zip(self._marks, kept, strict=True) if k]
+        self._contacts = [c for c in self._contacts if np.linalg.norm(c[0] - xy) > clear]
         if blocked_yaw is not None:
             self._bumps += 1
             ahead = self.robot_radius + 0.5 * resolution
@@ -304,8 +306,10 @@ class AStarAgent:
             visited = np.asarray(self._visited)
             covered = np.linalg.norm(marks[:, None] - visited[None], axis=-1).min(axis=1) <= clear
             covered &= self.contact_arc != 0.0  # the heading that bumped stays closed from here
-            self.blocked_points.extend(marks[~covered])
-            self._marks.extend((self._bumps, bool(a == 0.0)) for a in self.contact_arc[~covered])
+            arc = self.contact_arc[~covered]
+            self._contacts.extend(
+                (p, self._bumps, bool(a == 0.0)) for p, a in zip(marks[~covered], arc, strict=True)
+            )
 
     def _path_clear(self, free: NDArray[np.bool_], xy: NDArray[np.float64]) -> bool:
         """Whether the rest of the current path (from the point closest to ``xy``) stays on ``free``."""
