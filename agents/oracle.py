@@ -36,7 +36,7 @@ class OracleAgent:
         self.obstacles = ~np.asarray(gt.free, bool)
         self.agent = AStarAgent(**agent_kwargs)
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
         self.agent.reset()
 
     def act(self, obs: dict[str, Any]) -> Action:

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vgpnav_env.agents.guidance import GUIDANCE
-from vgpnav_env.arguments import positive_int_arg, seed_arg
+from vgpnav_env.arguments import positive_float_arg, positive_int_arg, seed_arg
 from vgpnav_env.perception.backbones import BACKBONES
 
 logger = logging.getLogger(__name__)
@@ -70,6 +70,11 @@ RECIPE_PPO_KWARGS: dict[str, Any] = {
     "ent_coef": 0.01,
     "gamma": 0.99,
 }
+#: PPO settings a fine-tuning run (``--init``) overrides by default: a third of the recipe's
+#: learning rate, and a KL target (SB3 ends an update's epochs once the approximate KL divergence
+#: from the rollout's policy exceeds 1.5 x ``target_kl``). Fine-tuning ppo_140000 at the recipe's
+#: 3e-4 and no target logged approx_kl 0.1-0.2 and collapsed after 161k steps.
+FINETUNE_PPO_KWARGS: dict[str, Any] = {"learning_rate": 1e-4, "target_kl": 0.02}
 PERCEPTIONS = ("model", *sorted(BACKBONES))
 CONFIG_FILE = "config.json"
 MODEL_FILE = "model.zip"
@@ -128,12 +133,13 @@ def make_vec(config: dict[str, Any], n_envs: int, seed: int, end_penalty: bool =
 
 
 class SB3Policy:
-    """A saved stable-baselines3 policy acting deterministically. A policy trained with
-    ``guidance`` computes its path channel itself from ``env`` (the perception-wrapped env it acts
-    in: its ``fused_map``, as the A* agent reads it), one trained with ``proprioception`` its
-    previous action and the env's bump sensor."""
+    """A saved stable-baselines3 policy: the most likely action, or with ``sample`` one drawn from
+    its action distribution (discrete actions; a generator seeded by :meth:`reset`'s episode seed).
+    A policy trained with ``guidance`` computes its path channel itself from ``env`` (the
+    perception-wrapped env it acts in: its ``fused_map``, as the A* agent reads it), one trained
+    with ``proprioception`` its previous action and the env's bump sensor."""
 
-    def __init__(self, path: str | Path, env: gym.Env | None = None) -> None:
+    def __init__(self, path: str | Path, env: gym.Env | None = None, sample: bool = False) -> None:
         from stable_baselines3 import PPO
 
         from vgpnav_env.agents.guidance import path_channel_for
@@ -142,7 +148,10 @@ class SB3Policy:
 
         single_thread()
         self.model = PPO.load(str(path), device="cpu")
-        self.env = env
+        if sample and not isinstance(self.model.action_space, gym.spaces.Discrete):
+            raise ValueError(f"sampled actions need a discrete action space, got {self.model.action_space}")
+        self.env, self.sample = env, bool(sample)
+        self.rng = np.random.default_rng()
         self.channel = self.sense = None
         config = load_config(path)["env"]
         if (config.get("guidance") is not None or config.get("proprioception")) and env is None:
@@ -152,11 +161,23 @@ class SB3Policy:
         if config.get("proprioception"):
             self.sense = Proprioceptor(env)
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
+        """Start an episode; ``seed`` (the episode's) seeds the sampled actions."""
         if self.channel is not None:
             self.channel.reset()
         if self.sense is not None:
             self.sense.reset()
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+
+    def probabilities(self, obs: Any) -> NDArray[np.float64]:
+        """The policy's action probabilities for ``obs`` as the model sees it (discrete actions)."""
+        import torch
+
+        tensor, _ = self.model.policy.obs_to_tensor(obs)
+        with torch.no_grad():
+            probs = self.model.policy.get_distribution(tensor).distribution.probs
+        return probs[0].double().numpy()
 
     def act(self, obs: Any) -> Any:
         space = self.model.observation_space
@@ -166,8 +187,12 @@ class SB3Policy:
             obs = {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
         if isinstance(obs, dict) and hasattr(space, "spaces"):
             obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
-        action, _ = self.model.predict(obs, deterministic=True)
-        action = int(action) if np.ndim(action) == 0 else action
+        if self.sample:
+            probs = self.probabilities(obs)
+            action: Any = int(self.rng.choice(len(probs), p=probs / probs.sum()))
+        else:
+            action, _ = self.model.predict(obs, deterministic=True)
+            action = int(action) if np.ndim(action) == 0 else action
         if self.sense is not None:
             self.sense.record(action)
         return action
@@ -329,7 +354,9 @@ def train_ppo(
     ``pretrain``: env steps of A* demonstrations the new policy is first cloned from;
     ``proprioception``: the previous action and the bump sensor in the observation; ``randomize``:
     the model perception's randomised episodes; ``init``: a trained policy (run directory or
-    ``.zip``, same observation) to start from, at its step count and curriculum stage)."""
+    ``.zip``, same observation) to start from, at its step count and curriculum stage, with
+    :data:`FINETUNE_PPO_KWARGS` updated by ``ppo_kwargs``; a new policy takes the recipe's PPO
+    settings updated by them)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import configure
@@ -363,6 +390,7 @@ def train_ppo(
         "curriculum": bool(curriculum and perception is not None),
         "pretrain": int(pretrain),
         **({"init": str(model_path(init))} if init is not None else {}),
+        **({"ppo": {**FINETUNE_PPO_KWARGS, **(ppo_kwargs or {})}} if init is not None else {}),
     }
     if saved is None:
         (out / CONFIG_FILE).write_text(json.dumps(run_config, indent=2) + "\n")
@@ -374,8 +402,8 @@ def train_ppo(
             logger.info("resuming from %s", ckpt)
             model = PPO.load(str(ckpt), env=venv, device="cpu")
         elif run_config.get("init"):
-            logger.info("starting from %s", run_config["init"])
-            model = PPO.load(run_config["init"], env=venv, device="cpu")
+            logger.info("starting from %s with %s", run_config["init"], run_config.get("ppo"))
+            model = PPO.load(run_config["init"], env=venv, device="cpu", **run_config.get("ppo", {}))
         else:
             recipe = config["perception"] is not None
             ppo = {**(RECIPE_PPO_KWARGS if recipe else DEFAULT_PPO_KWARGS), **(ppo_kwargs or {})}
@@ -583,6 +611,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "a new one: fine-tuning, no demonstrations",
     )
     parser.add_argument(
+        "--learning-rate",
+        type=positive_float_arg,
+        default=None,
+        help=f"PPO learning rate (default: {RECIPE_PPO_KWARGS['learning_rate']:g} for a new policy, "
+        f"{FINETUNE_PPO_KWARGS['learning_rate']:g} with --init)",
+    )
+    parser.add_argument(
+        "--target-kl",
+        type=positive_float_arg,
+        default=None,
+        help="stop an update's epochs once the approximate KL divergence exceeds 1.5 x this "
+        f"(default: none for a new policy, {FINETUNE_PPO_KWARGS['target_kl']:g} with --init)",
+    )
+    parser.add_argument(
         "--resume",
         action="store_true",
         help="continue from the newest checkpoint (with the run's saved config and curriculum stage)",
@@ -626,6 +668,15 @@ def run(args: argparse.Namespace) -> int:
         pretrain = 0
     if args.database is not None and len(args.scene) > 1:
         raise ValueError("--database names one scene's build: give one scene")
+    if args.resume and (args.learning_rate is not None or args.target_kl is not None):
+        raise ValueError(
+            "--resume continues with the run's saved PPO settings: no --learning-rate / --target-kl"
+        )
+    ppo_kwargs = {
+        key: value
+        for key, value in (("learning_rate", args.learning_rate), ("target_kl", args.target_kl))
+        if value is not None
+    }
     path = train_ppo(
         args.scene,
         args.steps,
@@ -642,6 +693,7 @@ def run(args: argparse.Namespace) -> int:
         proprioception=recipe and args.proprioception,
         randomize=args.randomize,
         init=args.init,
+        ppo_kwargs=ppo_kwargs,
     )
     if args.perception is not None:
         print(f"learning curve: {plot_learning_curve(args.out)}")

@@ -64,10 +64,11 @@ class Policy(Protocol):
     """What the protocol drives: ``reset()`` per episode, ``act(obs) -> action`` per step.
 
     Policies see observations only (plus what they were given at construction); the env's
-    ``info`` is for evaluation.
+    ``info`` is for evaluation. ``reset(seed)`` gets the episode's seed (a policy that samples its
+    actions draws them from it, so that an episode's actions do not depend on the worker).
     """
 
-    def reset(self) -> None: ...
+    def reset(self, seed: int | None = None) -> None: ...
 
     def act(self, obs: Any) -> Any: ...
 
@@ -111,7 +112,7 @@ class PerceptionAStar:
         self.turns_per_circle = int(np.ceil(2.0 * np.pi / base.turn_step))
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
         self.agent.reset()
         self.seen = False  # localized at least once this episode
         self.blind = 0  # consecutive frames without localization
@@ -187,13 +188,15 @@ class PerceptionAStar:
 class AgentPlan:
     """What running an ``--agent`` takes: its ``name`` (:data:`vgpnav_env.agents.AGENTS`), the
     perception ``backbone`` it drives on (None: none), the env keyword arguments it needs, and for
-    a PPO policy the ``model`` file and the ``database_dir`` it was trained with."""
+    a PPO policy the ``model`` file, the ``database_dir`` it was trained with and how it picks its
+    ``actions`` (:data:`ACTION_KINDS`)."""
 
     name: str
     backbone: str | None
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     model: Path | None = None
     database_dir: str | None = None
+    actions: str = "deterministic"
 
     @property
     def description(self) -> str:
@@ -213,15 +216,29 @@ PERCEPTION_KINDS = {
 }
 
 
-def plan_agent(agent: str, backbone: str, perception: str | None = None) -> AgentPlan:
+#: ``--actions``: how a PPO policy picks its action from its action distribution.
+ACTION_KINDS = {
+    "deterministic": "the most likely action (default)",
+    "sampled": "drawn from the distribution, seeded per episode",
+}
+
+
+def plan_agent(
+    agent: str, backbone: str, perception: str | None = None, actions: str = "deterministic"
+) -> AgentPlan:
     """The :class:`AgentPlan` of an ``--agent`` string (a one-line ValueError for an unknown name,
     FileNotFoundError for a missing PPO model). Perception agents drive on ``perception``
     (:data:`PERCEPTION_KINDS`; ``pixels`` uses ``backbone``): A* by default on pixels, a PPO policy
-    by default on the perception it was trained with (and its image size and database)."""
+    by default on the perception it was trained with (and its image size and database).
+    ``actions`` (:data:`ACTION_KINDS`) applies to PPO policies only (the others are planners)."""
     if perception is not None and perception not in PERCEPTION_KINDS:
         raise ValueError(f"unknown perception {perception!r}; allowed: {list(PERCEPTION_KINDS)}")
+    if actions not in ACTION_KINDS:
+        raise ValueError(f"unknown actions {actions!r}; allowed: {list(ACTION_KINDS)}")
     chosen = {None: None, "pixels": backbone, "model": "model"}[perception]
     name, path = parse_agent(agent)
+    if actions != "deterministic" and name != "ppo":
+        raise ValueError(f"--actions {actions} applies to ppo:PATH agents, not {name}")
     if name == "ppo":
         model = ppo.model_path(path)
         config = ppo.load_config(model)["env"]
@@ -230,9 +247,9 @@ def plan_agent(agent: str, backbone: str, perception: str | None = None) -> Agen
         env_kwargs.pop("max_steps", None)  # the protocol's budget
         if chosen is None or chosen == trained:
             env_kwargs["image_size"] = tuple(env_kwargs["image_size"])
-            return AgentPlan(name, trained, env_kwargs, model, config.get("database_dir"))
+            return AgentPlan(name, trained, env_kwargs, model, config.get("database_dir"), actions)
         env_kwargs.pop("image_size")  # another perception: the protocol's image size (its database)
-        return AgentPlan(name, chosen, env_kwargs, model)
+        return AgentPlan(name, chosen, env_kwargs, model, actions=actions)
     if name == "oracle":
         return AgentPlan(name, None, {"render_rgb": False})
     return AgentPlan(name, (chosen or backbone) if AGENTS[name].perception else None)
@@ -244,7 +261,7 @@ def make_policy(plan: AgentPlan, env: gym.Env) -> Policy:
         return OracleAgent(env)
     if plan.name == "astar":
         return PerceptionAStar(env)
-    return ppo.SB3Policy(plan.model, env)
+    return ppo.SB3Policy(plan.model, env, sample=plan.actions == "sampled")
 
 
 def make_env(plan: AgentPlan, env_kwargs: dict[str, Any], wrapper_kwargs: dict[str, Any]) -> gym.Env:
@@ -327,7 +344,7 @@ def run_episode(
     give their value at the end of the episode. ``on_step(n)`` is called after the n-th step.
     """
     obs, info = env.reset(seed=seed)
-    policy.reset()
+    policy.reset(seed)
     frames: dict[str, list[Any]] = {m.uuid: [] for m in _recorded() if m.per_frame}
     estimated: list[list[float]] = []
     collisions: list[int] = []
@@ -458,6 +475,7 @@ def navigation_settings(
         "scene": scene,
         "layout": env_kwargs["layout"],
         "agent": plan.name,
+        **({"actions": plan.actions} if plan.name == "ppo" else {}),
         "image size": f"{size[0]}x{size[1]}",
         "backbone": plan.backbone or "none",
         "perception mode": mode,
@@ -503,9 +521,10 @@ def evaluate_navigation(
     wrapper_kwargs: dict[str, Any] | None = None,
     workers: Workers | None = None,
     perception: str | None = None,
+    actions: str = "deterministic",
 ) -> dict[str, Any]:
     """Run the protocol; returns the report dict (also written to ``out_dir`` if given).
-    ``perception``: see :func:`plan_agent`.
+    ``perception`` and ``actions``: see :func:`plan_agent`.
 
     Perception agents use the database build at ``database_dir`` (default: the scene's build at
     the env's image size in the vgpnav cache, built if missing); ``wrapper_kwargs`` go to
@@ -516,7 +535,7 @@ def evaluate_navigation(
     clock = RunClock()
     if episodes <= 0:
         raise ValueError(f"episodes must be positive, got {episodes}")
-    plan = plan_agent(agent, backbone, perception)
+    plan = plan_agent(agent, backbone, perception, actions)
     kwargs = {"scene": scene, "layout": "changed", "image_size": tuple(size), **plan.env_kwargs}
     kwargs.update(env_kwargs or {})
     if kwargs["layout"] not in list_layouts(scene):  # an unknown scene fails here, before any work
@@ -547,6 +566,7 @@ def evaluate_navigation(
         "scene": scene,
         "layout": kwargs["layout"],
         "agent": agent,
+        **({"actions": plan.actions} if plan.name == "ppo" else {}),
         "backbone": plan.backbone,
         "seed": seed,
         "image_size": list(size),
@@ -680,6 +700,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + "; ".join(f"{k}: {v}" for k, v in PERCEPTION_KINDS.items())
         + " (default: pixels for astar, as trained for ppo)",
     )
+    parser.add_argument(
+        "--actions",
+        choices=list(ACTION_KINDS),
+        default="deterministic",
+        help="how a ppo:PATH policy acts: " + "; ".join(f"{k}: {v}" for k, v in ACTION_KINDS.items()),
+    )
     add_perception_mode_argument(parser)
     parser.add_argument("--episodes", type=positive_int_arg, default=20, help="number of start/goal pairs")
     parser.add_argument("--out", required=True, type=Path, help="report directory")
@@ -719,6 +745,7 @@ def run(args: argparse.Namespace) -> int:
             wrapper_kwargs={"backbone_options": options, "perception_mode": args.perception_mode},
             workers=workers,
             perception=args.perception,
+            actions=args.actions,
         )
     print_headline(headline(report), args.out)
     return 0

@@ -284,3 +284,40 @@ def test_randomised_episodes_lose_more_start_without_estimate_and_degrade_the_pr
     assert again[0] == lost_rand[0] and np.array_equal(first_again[0][1], first_rand[0][1])
     plain.close()
     randomised.close()
+
+
+def test_randomised_episodes_hide_the_obstacles_of_unseen_cells_from_depth():
+    """Randomised episodes draw unseen cells (a fraction in [0, MAX_UNSEEN] of the map, mean over
+    12 episodes within 0.1 of MAX_UNSEEN / 2, differing between episodes): depth adds no obstacle
+    evidence there. Never lost, with every cell unseen no cell's log-odds rises over 10 steps
+    turning in place; with none, some do. The plain model has no unseen cells."""
+    import dataclasses
+
+    from vgpnav_env.perception.model import MAX_UNSEEN, ModelObservation
+
+    config = {"scene": "home", "perception": "model", "env": {"image_size": [40, 30], "render_rgb": False}}
+    plain, env = make_env(config), make_env({**config, "wrapper": {"randomize": True}})
+    plain.reset(seed=0)
+    assert plain.get_wrapper_attr("unseen") is None
+    fractions = []
+    for seed in range(12):
+        env.reset(seed=seed)
+        fractions.append(float(env.get_wrapper_attr("unseen").mean()))
+    assert 0.0 <= min(fractions) and max(fractions) <= MAX_UNSEEN + 0.01
+    assert abs(np.mean(fractions) - MAX_UNSEEN / 2) < 0.1 and len(set(fractions)) > 1
+    model = env
+    while not isinstance(model, ModelObservation):
+        model = model.env
+    model.model = dataclasses.replace(model.model, p_lost=[0.0] * len(model.model.p_lost))
+    rises = []
+    for everywhere in (True, False):
+        model.reset(seed=0)
+        model.unseen = np.full(model.fused_map.spec.shape, everywhere)
+        model._lost, model._stickiness = False, 0.0
+        before = model.fused_map.logodds.copy()
+        for _ in range(10):
+            model.step(3)  # turn right: views all around
+        rises.append(int((model.fused_map.logodds > before + 1e-6).sum()))
+    assert rises[0] == 0 and rises[1] > 0
+    plain.close()
+    env.close()

@@ -6,7 +6,14 @@ import json
 
 import pytest
 
-from vgpnav_env.agents.ppo import latest_checkpoint, load_config, model_path, train_ppo
+from vgpnav_env.agents.ppo import (
+    FINETUNE_PPO_KWARGS,
+    RECIPE_PPO_KWARGS,
+    latest_checkpoint,
+    load_config,
+    model_path,
+    train_ppo,
+)
 from vgpnav_env.eval.navigation import evaluate_navigation, evaluate_policy
 
 TINY = {"image_size": (48, 40), "max_steps": 40}
@@ -54,6 +61,31 @@ def test_trained_policy_loads_and_evaluates(trained, tmp_path):
     assert all((r["failure"] is None) == r["success"] for r in records)
     assert all(r["steps"] <= 40 for r in report["records"])
     assert (tmp_path / "eval" / "report.json").is_file()
+
+
+@pytest.mark.slow
+def test_sampled_actions_follow_the_policy_distribution_and_the_episode_seed(trained):
+    """``sample``: actions drawn from the policy's distribution (frequencies within 0.1 of its
+    probabilities over 400 draws, ~4 standard deviations), the same draws after the same episode
+    seed; without it the most likely action every time."""
+    import numpy as np
+
+    from vgpnav_env.agents.ppo import SB3Policy
+    from vgpnav_env.make import make_env
+
+    out, path = trained
+    env = make_env(load_config(path)["env"])
+    obs, _ = env.reset(seed=0)
+    sampled, greedy = SB3Policy(path, sample=True), SB3Policy(path)
+    probs = sampled.probabilities(obs)
+    assert probs.shape == (4,) and probs.sum() == pytest.approx(1.0, abs=1e-6)
+    sampled.reset(seed=7)
+    draws = [sampled.act(obs) for _ in range(400)]
+    assert np.abs(np.bincount(draws, minlength=4) / 400 - probs).max() < 0.1
+    sampled.reset(seed=7)
+    assert [sampled.act(obs) for _ in range(400)] == draws
+    assert {greedy.act(obs) for _ in range(5)} == {int(np.argmax(probs))}
+    env.close()
 
 
 def test_bad_arguments():
@@ -139,9 +171,15 @@ def test_guided_recipe_sees_the_path_channel_and_evaluates_on_the_protocol(tmp_p
     progress = (out / "tb" / "progress.csv").read_text().splitlines()
     assert "curriculum/max_geodesic" in progress[0].split(",")
     report = evaluate_navigation(
-        "home", agent=f"ppo:{out}", episodes=1, perception="model", env_kwargs={"max_steps": 10}
+        "home",
+        agent=f"ppo:{out}",
+        episodes=1,
+        perception="model",
+        env_kwargs={"max_steps": 10},
+        actions="sampled",
     )
     assert report["episodes"] == 1 and report["records"][0]["steps"] <= 10
+    assert report["actions"] == "sampled" and report["settings"]["actions"] == "sampled"
     with pytest.raises(ValueError, match="guidance needs a perception"):
         train_ppo("home", 64, tmp_path / "unused", guidance="path")
 
@@ -186,6 +224,8 @@ def test_init_fine_tunes_a_trained_policy_on_randomised_model_episodes(tmp_path)
     )
     config = load_config(path)
     assert config["env"]["wrapper"] == {"randomize": True} and config["init"] == str(first)
+    # Fine-tuning's smaller update: the default learning rate and KL target, ppo_kwargs on top.
+    assert config["ppo"] == {**FINETUNE_PPO_KWARGS, "n_steps": 64}
     assert config["pretrain"] == 0
     # It continued from the init's 64 steps: its first rollout ends at 128 (a new run's at 64).
     rows = (tmp_path / "b" / "tb" / "progress.csv").read_text().splitlines()
@@ -197,5 +237,10 @@ def test_init_fine_tunes_a_trained_policy_on_randomised_model_episodes(tmp_path)
         not np.array_equal(x, y) for x, y in zip(a.policy.parameters(), b.policy.parameters(), strict=True)
     ]
     assert b.num_timesteps == 128 and any(moved)
+    assert (
+        b.learning_rate == FINETUNE_PPO_KWARGS["learning_rate"]
+        and b.target_kl == FINETUNE_PPO_KWARGS["target_kl"]
+    )
+    assert a.learning_rate == RECIPE_PPO_KWARGS["learning_rate"] and a.target_kl is None
     with pytest.raises(ValueError, match="randomize applies to the model perception"):
         train_ppo("home", 64, tmp_path / "c", perception="simulated", randomize=True)

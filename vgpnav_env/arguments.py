@@ -7,6 +7,7 @@ allowed; the CLI turns it into ``vgpnav: error: ...`` and exit code 2.
 from __future__ import annotations
 
 import argparse
+import math
 
 #: Largest image (width, height) in pixels a build or an env camera may have.
 MAX_IMAGE_SIZE = (1920, 1080)
@@ -49,6 +50,17 @@ def _int_at_least(text: str, low: int, what: str) -> int:
 def positive_int_arg(text: str) -> int:
     """argparse type for counts that must be at least 1 (episodes, steps, workers, references)."""
     return _int_at_least(text, 1, "a positive")
+
+
+def positive_float_arg(text: str) -> float:
+    """argparse type for a finite number above 0 (rates, thresholds)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
 
 
 def count_arg(text: str) -> int:
