@@ -18,6 +18,9 @@ from vgpnav_env.perception.verify import (
     epipolar_support,
     explained_confidence,
     off_plane_matches,
+    pair_support,
+    pooled_pairs,
+    rival_pairs,
     verify_pose,
 )
 
@@ -282,4 +285,91 @@ def replace_first(out: BackboneOutput, k: int) -> BackboneOutput:
     return replace(
         out, T_qi=out.T_qi[:k], confidence=out.confidence[:k], n_matches=out.n_matches[:k],
         scale_valid=out.scale_valid[:k], matches=out.matches[:k],
+    )  # fmt: skip
+
+
+def test_a_reference_the_pose_explains_in_small_part_still_makes_a_rival() -> None:
+    # Room B's pose with one of B's references and one of A's: A's pair sees room A's view (its
+    # own geometry is the true pose), and 40 of its matches (far points, in front of both
+    # cameras) happen to fit B's pose too: B's pose "explains" A's reference, in small part.
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    keep = [3, 0]
+    rng = np.random.default_rng(2)
+    far = np.c_[rng.uniform(25, 60, 4000), rng.uniform(25, 60, 4000), rng.uniform(0, 3, 4000)]
+    stray = _matches(T_b, T_wi[0], far, rng)[:40]
+    assert len(stray) == 40
+    matches = [out.matches[3], np.concatenate([out.matches[0], stray])]
+    T_wi = T_wi[keep]
+    out = replace(
+        out, T_qi=invert_pose(T_a) @ T_wi, confidence=np.full(2, 0.5),
+        n_matches=np.array([len(m) for m in matches]), scale_valid=out.scale_valid[keep], matches=matches,
+    )  # fmt: skip
+    config = VerifyConfig(min_explained_confidence=None)
+    raw = epipolar_support(T_b, T_wi, out.matches, CAMERA, 2.0)
+    own = pair_support(T_wi, out, CAMERA, config)
+    assert raw[1] >= 38 and own[1] >= 5 * raw[1], (raw, own)
+    # Unexplained references only (the rule before rival_claim_ratio): room A is no rival, and the
+    # wrong room is confirmed by two references.
+    old = replace(config, rival_claim_ratio=None)
+    assert verify_pose(T_b, T_wi, out, CAMERA, old, rivals=[T_a]).ok
+    assert rival_pairs(raw, T_wi, out, CAMERA, old).tolist() == raw.tolist()
+    # A's pair, explained by B's pose in under half of what room A's pose explains, is room A's:
+    # rival_poses gets it as a pair the pose does not explain, and the frame is ambiguous.
+    assert rival_pairs(raw, T_wi, out, CAMERA, config).tolist() == [raw[0], 0]
+    verdict = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a])
+    assert verdict.reason == "ambiguous" and verdict.rival_strength >= own[1] - 5, verdict.detail
+    # Room A's pose is ambiguous too (room B's reference), never confirmed as the only place.
+    assert verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b]).reason == "ambiguous"
+    with pytest.raises(ValueError, match="rival_claim_ratio"):
+        VerifyConfig(rival_claim_ratio=1.5)
+
+
+def test_ambiguity_compares_the_strongest_references_of_each_place() -> None:
+    # Room B's pose has its three references; room A, the true room, has one view retrieved (all
+    # of a place's views match the query alike in identical rooms).
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    keep = [3, 4, 5, 0]
+    out = replace(
+        out, T_qi=out.T_qi[keep], confidence=out.confidence[keep], n_matches=out.n_matches[keep],
+        scale_valid=out.scale_valid[keep], matches=[out.matches[i] for i in keep],
+    )  # fmt: skip
+    T_wi = T_wi[keep]
+    summed = VerifyConfig(ambiguity_references=None, min_explained_confidence=None, ambiguity_ratio=0.45)
+    # Summed over all references, three views of B (664, 670, 530 matches) outweigh A's one
+    # (664): B is confirmed, wrongly.
+    assert verify_pose(T_b, T_wi, out, CAMERA, summed, rivals=[T_a]).ok
+    # The two strongest references of each place: A's lone view against B's two, ambiguous.
+    verdict = verify_pose(T_b, T_wi, out, CAMERA, replace(summed, ambiguity_references=2), rivals=[T_a])
+    assert verdict.reason == "ambiguous", verdict.detail
+    assert VerifyConfig().ambiguity_references == 2
+    with pytest.raises(ValueError, match="ambiguity_references"):
+        VerifyConfig(ambiguity_references=0)
+
+
+def test_the_losing_rounds_pairs_still_count() -> None:
+    # Round 1 retrieved room A's references (the query's room); round 2 chose references around a
+    # hypothesis in room B and won. Round 2's pairs alone confirm room B; pooled with round 1's,
+    # room A is a rival as strong: ambiguous, never the wrong room.
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    first, second = replace_first(out, 3), _last(out, 3)
+    refs_1, refs_2 = np.array([10, 11, 12]), np.array([20, 21, 22])
+    config = VerifyConfig(min_explained_confidence=None)
+    assert verify_pose(T_b, T_wi[3:], second, CAMERA, config, rivals=[T_a]).ok
+    refs, pooled = pooled_pairs(refs_2, second, refs_1, first)
+    assert refs.tolist() == [20, 21, 22, 10, 11, 12] and pooled.k == 6
+    assert [len(m) for m in pooled.matches] == [len(m) for m in second.matches + first.matches]
+    T_pooled = np.concatenate([T_wi[3:], T_wi[:3]])
+    verdict = verify_pose(T_b, T_pooled, pooled, CAMERA, config, rivals=[T_a])
+    assert verdict.reason == "ambiguous", verdict.detail
+    # A reference both rounds used counts once.
+    refs, pooled = pooled_pairs(refs_2, second, np.array([20, 10]), replace_first(first, 2))
+    assert refs.tolist() == [20, 21, 22, 10] and pooled.k == 4
+    assert pooled_pairs(refs_2, second, refs_2, second)[1] is second
+
+
+def _last(out: BackboneOutput, k: int) -> BackboneOutput:
+    """``out`` restricted to its last ``k`` pairs."""
+    return replace(
+        out, T_qi=out.T_qi[-k:], confidence=out.confidence[-k:], n_matches=out.n_matches[-k:],
+        scale_valid=out.scale_valid[-k:], matches=out.matches[-k:],
     )  # fmt: skip

@@ -70,7 +70,9 @@ from vgpnav_env.perception.verify import (
     VerifyConfig,
     check_height,
     check_scale,
+    pooled_pairs,
     reference_support,
+    rival_pairs,
     rival_poses,
     round_rank,
     second_round_references,
@@ -199,7 +201,9 @@ class PerceptionResult:
 class _Localization:
     """Stages 1-3 of one frame: references, backbone output and motion-averaging result (the pose
     in W, its translation at the rays' scale); ``reason`` is a lost reason, "" when localized;
-    ``retrieved``: the first round's references; ``source``: tracking or global."""
+    ``retrieved``: the first round's references; ``source``: tracking or global; ``other``: the
+    references and backbone output of the round that lost (None: one round), which verification
+    checks the pose against too."""
 
     references: NDArray[np.int64]
     backbone: BackboneOutput | None = None
@@ -209,6 +213,7 @@ class _Localization:
     detail: str = ""
     retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     source: str = "global"
+    other: tuple[NDArray[np.int64], BackboneOutput] | None = None
 
     @property
     def ok(self) -> bool:
@@ -414,12 +419,16 @@ class Perceiver:
         return result, points_w
 
     def _verify(self, loc: _Localization, pose: _MetricPose) -> Verdict:
-        """:func:`verify_pose` of the metric pose against the frame's references, with the rival
-        poses of the pairs it does not explain (:func:`rival_poses`)."""
-        out, T_wi = loc.backbone, self.database.poses[loc.references]
+        """:func:`verify_pose` of the metric pose against the frame's references and those of the
+        round that lost (:func:`pooled_pairs`), with the rival poses of the pairs it does not
+        explain, or in small part (:func:`rival_pairs`, :func:`rival_poses`)."""
+        refs, out = loc.references, loc.backbone
+        if loc.other is not None:
+            refs, out = pooled_pairs(refs, out, *loc.other)
+        T_wi = self.database.poses[refs]
         cfg = self.config
         support = reference_support(pose.T_wc, T_wi, out, self.camera, cfg.verify)
-        support = np.where(support >= cfg.verify.min_support_matches, support, 0)
+        support = rival_pairs(support, T_wi, out, self.camera, cfg.verify)
         rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
         camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
         return verify_pose(pose.T_wc, T_wi, out, self.camera, cfg.verify, rivals=rivals, camera_z=camera_z)
@@ -453,7 +462,7 @@ class Perceiver:
         if len(refs) == 0:
             detail = "empty database" if predicted is None else "no database camera near the predicted pose"
             return _Localization(refs, reason="too few matches", detail=detail, source=source)
-        retrieved = refs
+        retrieved, other = refs, None
         out, motion = self._round(rgb, refs, privileged, clock)
         if cfg.averaging.method == "weighted":
             with clock.stage("retrieval"):
@@ -480,7 +489,10 @@ class Perceiver:
                     motion2.reason,
                 )
                 if round_rank(out2, motion2) > round_rank(out, motion):
+                    other = refs, out
                     refs, out, motion = second, out2, motion2
+                else:
+                    other = second, out2
         n_conf = int((out.confidence > 0).sum())
         if n_conf == 0:
             detail = f"no reference pair passed the backbone (matches {out.n_matches.tolist()})"
@@ -489,8 +501,8 @@ class Perceiver:
             )
         if not motion.ok:
             reason = "too few matches" if motion.reason == "too few references" else "no consensus"
-            return _Localization(refs, out, motion, n_conf, reason, motion.reason, retrieved, source)
-        return _Localization(refs, out, motion, n_conf, retrieved=retrieved, source=source)
+            return _Localization(refs, out, motion, n_conf, reason, motion.reason, retrieved, source, other)
+        return _Localization(refs, out, motion, n_conf, retrieved=retrieved, source=source, other=other)
 
     def _round(
         self, rgb: NDArray[np.uint8], refs: NDArray[np.int64], privileged: Privileged | None, clock: _Clock
