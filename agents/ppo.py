@@ -537,6 +537,8 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     cloned = f", cloned from {run['pretrain']} A* steps" if run.get("pretrain") else ""
     if run.get("init"):
         cloned += f", from {Path(run['init']).stem}"
+    if run.get("ppo"):
+        cloned += ", " + ", ".join(f"{k} {v:g}" for k, v in run["ppo"].items() if isinstance(v, float))
     if (config.get("wrapper") or {}).get("randomize"):
         cloned += ", randomised episodes"
     where = scenes[0] if len(scenes) == 1 else f"{scenes[0]} + {len(scenes) - 1} scenes"
