@@ -41,7 +41,7 @@ from vgpnav_env.eval.perception_runs import (
 )
 from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
 from vgpnav_env.eval.workers import Workers, add_worker_arguments, note, workers_from_args
-from vgpnav_env.measures import MEASURES, Measure
+from vgpnav_env.measures import MEASURES, Measure, frame_value
 from vgpnav_env.robot import Action
 
 logger = logging.getLogger(__name__)
@@ -353,8 +353,9 @@ def run_episode(
         if isinstance(obs, dict) and "pose" in obs:
             estimated.append(np.asarray(obs["pose"], float).tolist())
         for uuid, values in frames.items():
-            if uuid in info:
-                values.append(info[uuid])
+            value = frame_value(info, uuid)
+            if value is not None:
+                values.append(value)
         obs, _, terminated, truncated, info = env.step(policy.act(obs))
         if info["blocked"]:
             collisions.append(int(info["steps"]) - 1)

@@ -107,10 +107,10 @@ def ekf(**kwargs) -> EKFState:
 
 
 def started(**kwargs) -> EKFState:
-    """An EKF whose first estimate (0, 0, 0) was confirmed by a second fix standing still."""
+    """An EKF whose first estimate (0, 0, 0) was started by a strong fix after a weaker one."""
     s = ekf(**kwargs)
-    for _ in range(s.config.init_fixes):
-        s.correct(np.array([0.0, 0.0, 0.0]))
+    s.correct(np.array([0.0, 0.0, 0.0]))
+    s.correct(np.array([0.0, 0.0, 0.0]), score=s.config.init_score)
     assert s.fix == "reset" and s.has_estimate
     return s
 
@@ -123,9 +123,11 @@ def drive(s: EKFState, actions, fixes=None) -> None:
         s.correct(fix)
 
 
-def test_ekf_starts_from_a_confirmed_fix():
-    """No estimate until ``init_fixes`` (2) consistent fixes: a lone wrong first fix (an aliased
-    place) does not start the episode there; the next consistent pair does."""
+def test_ekf_starts_from_a_fix_confirmed_from_another_view():
+    """No estimate until ``init_fixes`` (2) fixes agree under the odometry, one of them perceived
+    at least 30 deg of turning (or 0.25 m of travel) earlier: a lone wrong first fix (an aliased
+    place) does not start the episode there, nor do consistent fixes of one view (home seed 0 and
+    hospital seed 19 started metres off from the views at reset); the next view's does."""
     s = ekf()
     s.correct(None)
     np.testing.assert_array_equal(s.estimate, (1.0, 2.0, 0.0))
@@ -137,9 +139,28 @@ def test_ekf_starts_from_a_confirmed_fix():
     s.correct(np.array([0.0, 0.0, 0.0]))  # right, but disagrees with the candidate
     assert s.fix == "unconfirmed" and not s.has_estimate
     s.predict(Action.TURN_LEFT, IMAGES[2])
-    s.correct(np.array([0.01, 0.0, np.radians(15)]))  # consistent under the odometry: confirmed
+    s.correct(np.array([0.01, 0.0, np.radians(15)]))  # consistent, but only 15 deg turned: one view
+    assert s.fix == "unconfirmed" and not s.has_estimate
+    s.predict(Action.TURN_LEFT, IMAGES[1])
+    s.correct(np.array([0.0, 0.01, np.radians(30)]))  # 30 deg after the right one: confirmed
     assert s.fix == "reset" and s.localized and s.has_estimate
-    np.testing.assert_allclose(s.estimate, (0.01, 0.0, np.radians(15)))
+    np.testing.assert_allclose(s.estimate, (0.0, 0.01, np.radians(30)))
+
+
+def test_ekf_first_estimate_by_travel_or_a_strong_fix():
+    """Fixes standing still (the views at reset) never confirm each other; one 0.25 m step later
+    a consistent fix does; a fix whose verifier score reaches ``init_score`` starts alone."""
+    s = ekf()
+    for _ in range(3):
+        s.correct(np.array([0.0, 0.0, 0.0]), score=0.8)
+        assert s.fix == "unconfirmed"
+    s.predict(Action.FORWARD, IMAGES[1])
+    s.correct(np.array([0.27, 0.0, 0.0]))
+    assert s.fix == "reset"
+    np.testing.assert_allclose(s.estimate, (0.27, 0.0, 0.0))
+    s = ekf()
+    s.correct(np.array([2.0, 1.0, 0.5]), score=0.9)
+    assert s.fix == "reset" and s.has_estimate
 
 
 def test_ekf_tracks_by_odometry_with_growing_covariance():

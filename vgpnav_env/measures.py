@@ -145,6 +145,26 @@ class Measurements:
         """uuid -> current value, in registration order."""
         return {uuid: m.metric for uuid, m in self.measures.items()}
 
+    def defined_metrics(self) -> dict[str, Any]:
+        """:meth:`metrics` without the undefined ones (a float nan, e.g. a pose error before the
+        first estimate): an ``info`` of these compares equal between identical runs (nan != nan)."""
+        return defined(self.metrics())
+
+
+def defined(values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` without the undefined entries (float nan)."""
+    return {k: v for k, v in values.items() if not (isinstance(v, float) and np.isnan(v))}
+
+
+def frame_value(info: dict[str, Any], uuid: str) -> Any:
+    """The per-frame value of measure ``uuid`` in a step's ``info``: its entry, or nan (undefined)
+    when info left it out but holds other measures of its scope
+    (:meth:`Measurements.defined_metrics`); None when info has no measure of that scope."""
+    if uuid in info:
+        return info[uuid]
+    scope = MEASURES[uuid].scope
+    return float("nan") if any(m.scope == scope and k in info for k, m in MEASURES.items()) else None
+
 
 def _dependency_order(classes: list[type[Measure]]) -> list[str]:
     """uuids so that every measure comes after the ones it depends on (same scope only)."""

@@ -36,21 +36,24 @@ timings) is ``last_result``.
 The pose state's motion model reads the env's bump sensor (``env.unwrapped.bumped``: the step's
 motion was blocked) beside the actions. ``info`` is for evaluation only: it keeps the env's entries
 (true pose etc.) and adds ``perception`` (the frame's status, reason, ``T_wc``, scale, scale
-source, anchored ground height, references and confident pairs, reference ``source`` -- tracking or
-global -- and the pose state's ``fix``, :data:`~vgpnav_env.perception.state.FIX_OUTCOMES`),
-``estimated_pose``, ``obstacles`` (bool grid of occupied cells of the fused map) with ``map_spec``
-(its ``GridSpec``), and the metrics of the ``"estimate"`` measures of :mod:`vgpnav_env.measures`:
-``localization_error_m`` (horizontal error of the observed ``pose``; nan before the pose state's
-first estimate, whose frames ``no_estimate`` marks), ``localized``, ``tracked``, ``relocalized``
-and ``gross_pose_error``. Timings stay out of it so that ``info`` is comparable between runs.
+source, anchored ground height -- scale and height left out while undefined --, references and
+confident pairs, reference ``source`` -- tracking or global -- and the pose state's ``fix``,
+:data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), ``estimated_pose``, ``obstacles`` (bool grid of
+occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``), and the metrics of the
+``"estimate"`` measures of :mod:`vgpnav_env.measures`: ``localization_error_m`` (horizontal error
+of the observed ``pose``), ``localized``, ``tracked``, ``relocalized``, ``gross_pose_error`` and
+``no_estimate``; before the pose state's first estimate (``no_estimate`` True) the pose-error
+entries are left out, not nan (:meth:`~vgpnav_env.measures.Measurements.defined_metrics`). Timings
+stay out of it and nothing is nan, so that ``info`` of identical runs compares equal.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
 height initialisation with the known camera height); their perceived poses (yaw offsets taken
-out) are the pose state's first fixes, the first view's last (the EKF's first estimate needs
-``EKFConfig.init_fixes`` consistent fixes: at reset these nearly identical views can give them,
-later a wrong first fix needs a consistent second one from another frame). The wrapper also
-sets the env's render overlay (estimated pose and fused obstacles).
+out) are the pose state's first fixes, the first view's last, each with its verifier score
+(the EKF's first estimate needs ``EKFConfig.init_fixes`` consistent fixes, one of them from
+another view -- these nearly identical views are one view -- or a fix scoring
+``EKFConfig.init_score``). The wrapper also sets the env's render overlay (estimated pose and
+fused obstacles).
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import wrap_angle
-from vgpnav_env.measures import EstimateState, Measurements
+from vgpnav_env.measures import EstimateState, Measurements, defined
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
 from vgpnav_env.perception.occupancy import LogOddsMap
@@ -294,7 +297,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if view.localized and view.T_wc is not None:
                 fix = base_pose(view.T_wc)
                 fix[2] = wrap_angle(fix[2] - dyaw)
-            self.pose_state.correct(fix)
+            self.pose_state.correct(fix, view.confidence)
         return self._observe(obs, info, results[0], first=True)
 
     def step(self, action: Any):
@@ -317,7 +320,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         """The navigation observation (and the evaluation info) after the pose state took in ``result``."""
         perceived = result.localized and result.T_wc is not None
-        self.pose_state.correct(base_pose(result.T_wc) if perceived else None)
+        self.pose_state.correct(base_pose(result.T_wc) if perceived else None, result.confidence)
         localized = self.pose_state.localized
         if localized and not first and self.perception_mode != "paper":
             self.perceiver.fuse(result)  # the map takes only frames whose pose the estimator trusts
@@ -339,22 +342,24 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         (self.measurements.reset if first else self.measurements.update)(state)
         info = dict(info)
         info.update(
-            perception={
-                "status": result.status,
-                "reason": result.reason,
-                "T_wc": result.T_wc,
-                "scale": result.scale,
-                "scale_source": result.scale_source,
-                "z_ground": result.z_ground,
-                "references": result.references,
-                "n_confident_pairs": result.n_confident_pairs,
-                "source": result.source,
-                "fix": self.pose_state.fix,
-            },
+            perception=defined(
+                {
+                    "status": result.status,
+                    "reason": result.reason,
+                    "T_wc": result.T_wc,
+                    "scale": result.scale,
+                    "scale_source": result.scale_source,
+                    "z_ground": result.z_ground,
+                    "references": result.references,
+                    "n_confident_pairs": result.n_confident_pairs,
+                    "source": result.source,
+                    "fix": self.pose_state.fix,
+                }
+            ),
             estimated_pose=estimate.copy(),
             obstacles=obstacles,
             map_spec=occupancy.spec,
-            **self.measurements.metrics(),
+            **self.measurements.defined_metrics(),
         )
         self.env.unwrapped.set_overlay(
             estimated_pose=estimate,

@@ -223,12 +223,14 @@ class _Localization:
 @dataclass(frozen=True)
 class _MetricPose:
     """Stage 4 of one frame: the metric ``T_wc``, its scale (metres per backbone unit), the ground
-    peak it came from and the anchored floor height (nan before the anchor is set)."""
+    peak it came from and the anchored floor height (nan before the anchor is set); ``anchor``: the
+    provisional anchor this pose set (the perceiver had none), kept only if the pose is verified."""
 
     T_wc: NDArray[np.float64]
     scale: ScaleEstimate
     ground: GroundEstimate | None = None
     z_ground: float = float("nan")
+    anchor: GroundAnchor | None = None
 
 
 class _Clock:
@@ -303,7 +305,10 @@ class Perceiver:
         """Anchor the ground from frames taken while the robot stands still (paper "Ground Height
         Initialization"): ``z_ground = mean(t_wc.z) - camera_height`` over the frames whose motion
         averaging succeeded. Then every frame is perceived (and fused) with the anchor. If none
-        localizes, the anchor stays unset and the next localized :meth:`perceive` call sets it.
+        localizes (verified), the anchor is dropped: poses the images do not confirm set no floor
+        (a wall's plane gave home seed 3 a pose 1 m off and the floor 0.52 m too high, and every
+        right pose after it failed the camera-height check); the first verified :meth:`perceive`
+        sets it.
         """
         if isinstance(images, np.ndarray) and images.ndim == 3:
             images = [images]
@@ -317,7 +322,10 @@ class Perceiver:
                 observations.append((loc.motion.T_wq, None))
         if observations:
             self.anchor.initialize(observations, self.config.camera_height)
-        return [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
+        results = [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
+        if not any(r.localized for r in results):
+            self.anchor = GroundAnchor(self.config.scale)
+        return results
 
     def perceive(
         self,
@@ -385,6 +393,8 @@ class Perceiver:
             return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground), None
         with clock.stage("verification"):
             verdict = self._verify(loc, pose)
+        if verdict.ok and pose.anchor is not None and not self.anchor.initialized:
+            self.anchor = pose.anchor  # the first verified pose anchors the ground
         if not verdict.ok:
             loc = replace(
                 loc,
@@ -542,8 +552,8 @@ class Perceiver:
 
     def _recover_scale(self, loc: _Localization, gate: PoseGate | None) -> tuple[_Localization, _MetricPose]:
         """Stage 4: the metric pose and scale of a localized frame, and ``loc`` (lost when the pose
-        is outside ``gate`` or no scale is found). The first such pose anchors the ground if
-        nothing did before."""
+        is outside ``gate`` or no scale is found). Without an anchor, the pose anchors the ground
+        provisionally (the returned pose's ``anchor``; :meth:`_attempt` keeps it once verified)."""
         single = loc.motion.reason == "single reference" and self.config.scale.enabled
         T_wc, scale, ground = self._place_single(loc) if single else (loc.motion.T_wq, None, None)
         if gate is not None and not gate.admits(T_wc):
@@ -554,12 +564,14 @@ class Perceiver:
             )
             none = ScaleEstimate(float("nan"), "none")
             return replace(loc, reason="inconsistent motion", detail=detail), _MetricPose(T_wc, none)
-        if not self.anchor.initialized and (scale is None or scale.ok):
-            self.anchor.initialize([(T_wc, None)], self.config.camera_height)
+        anchor, provisional = self.anchor, None
+        if not anchor.initialized and (scale is None or scale.ok):
+            anchor = provisional = GroundAnchor(self.config.scale)
+            anchor.initialize([(T_wc, None)], self.config.camera_height)
         if scale is None:
-            scale, ground = self._ground_scale(loc, T_wc)
-        z_ground = float(self.anchor.z_ground) if self.anchor.initialized else float("nan")
-        pose = _MetricPose(T_wc, scale, ground, z_ground)
+            scale, ground = self._ground_scale(loc, T_wc, anchor)
+        z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")
+        pose = _MetricPose(T_wc, scale, ground, z_ground, provisional)
         if not scale.ok:
             return replace(loc, reason="no ground", detail="no ground peak and no ray-implied scale"), pose
         return loc, pose
@@ -579,20 +591,20 @@ class Perceiver:
         return T_wc, ScaleEstimate(scale, "ground"), ground
 
     def _ground_scale(
-        self, loc: _Localization, T_wc: NDArray[np.float64]
+        self, loc: _Localization, T_wc: NDArray[np.float64], anchor: GroundAnchor
     ) -> tuple[ScaleEstimate, GroundEstimate]:
         """Stage 4: the ground peak near the height the rays' scale predicts (else the dominant peak),
-        scaled to the camera height above the anchored ground, checked against the rays' scale."""
+        scaled to the camera height above the ``anchor``'s ground, checked against the rays' scale."""
         out, ray_scale = loc.backbone, loc.motion.scale_from_rays
         prior = None
-        if self.anchor.initialized and self.config.scale.enabled:
-            prior = self.anchor.expected_height_b(T_wc, ray_scale)
+        if anchor.initialized and self.config.scale.enabled:
+            prior = anchor.expected_height_b(T_wc, ray_scale)
         ground = self._ground(out, T_wc, prior)
         if prior is not None and not ground.found:
             # Nothing near the ray-implied height: the rays' scale may be off (a weak pair);
             # the dominant ground peak counts if it passes the scale check against them.
             ground = self._ground(out, T_wc, None)
-        scale = self.anchor.scale_for(T_wc, ground, fallback_scale=ray_scale)
+        scale = anchor.scale_for(T_wc, ground, fallback_scale=ray_scale)
         return check_scale(scale, ray_scale, self.config.verify), ground
 
     def _calibrated_scale(self, out: BackboneOutput, T_wc: NDArray[np.float64]) -> float | None:

@@ -53,7 +53,8 @@ FIX_OUTCOMES: dict[str, str] = {
     "accepted": "the perceived pose agreed with the estimate and corrected it",
     "rejected": "the perceived pose contradicted the estimate (outside its gate) and was ignored",
     "reset": "the estimate was set to the perceived pose (first confirmed fix, or a detected kidnapping)",
-    "unconfirmed": "a perceived pose before the first estimate, not yet confirmed by consistent ones",
+    "unconfirmed": "a perceived pose before the first estimate, not yet confirmed by a consistent one "
+    "from another view",
 }
 
 
@@ -91,8 +92,10 @@ class PoseState(Protocol):
     def gate(self) -> PoseGate | None:
         """Where this frame's perceived pose must lie to be accepted (None: no constraint)."""
 
-    def correct(self, measured: NDArray[np.float64] | None) -> None:
-        """Measurement update with the perceived pose (x, y, yaw), or None when perception is lost."""
+    def correct(self, measured: NDArray[np.float64] | None, score: float = 0.0) -> None:
+        """Measurement update with the perceived pose (x, y, yaw), or None when perception is lost;
+        ``score``: how strongly the images confirm it (the verifier's
+        :attr:`~vgpnav_env.perception.verify.Verdict.score`, 0 = unknown)."""
 
     @property
     def estimate(self) -> NDArray[np.float64]:
@@ -251,7 +254,7 @@ class OdometryState:
             float(np.radians(cfg.max_yaw_deg + cfg.growth_deg * turns)),
         )
 
-    def correct(self, measured: NDArray[np.float64] | None) -> None:
+    def correct(self, measured: NDArray[np.float64] | None, score: float = 0.0) -> None:
         self._localized = measured is not None
         if measured is not None:
             estimate = np.asarray(measured, float)
@@ -282,8 +285,12 @@ class EKFConfig:
     support, and an accepted fix ends the run). Fixes within ``drift_m`` of the estimate need only
     ``kidnap_fixes``: the estimate drifted (e.g. a blocked step the pixels did not show), it was not
     carried away. The first
-    estimate of an episode likewise needs ``init_fixes`` consistent fixes (a single wrong first fix
-    would otherwise start the episode at the wrong place). Tracking (references around the
+    estimate of an episode likewise needs ``init_fixes`` consistent fixes, the earliest of them
+    taken at least ``init_view_m`` of travel or ``init_view_deg`` of turning before the last (by
+    the odometry): a single wrong first fix, or several of one view, would otherwise start the
+    episode at the wrong place (home seed 0 and hospital seed 19 started 3.8 m and ~1-4 m off from
+    the views at reset); a fix whose verifier score reaches ``init_score`` starts it alone.
+    Tracking (references around the
     prediction) while the position standard deviation (largest axis) is at most
     ``track_max_sigma`` and the yaw's at most ``track_max_sigma_deg``; beyond, global retrieval
     relocalizes.
@@ -299,6 +306,9 @@ class EKFConfig:
     gate_chi2: float = 14.2
     kidnap_fixes: int = 3
     init_fixes: int = 2
+    init_view_m: float = 0.25
+    init_view_deg: float = 30.0
+    init_score: float = 0.9
     max_support: int = 8
     drift_m: float = 0.5
     track_max_sigma: float = 0.5
@@ -307,7 +317,8 @@ class EKFConfig:
     def __post_init__(self) -> None:
         values = (self.forward_sigma, self.lateral_sigma, self.turn_sigma_deg, self.continuous_sigma,
                   self.continuous_sigma_deg, self.fix_sigma, self.fix_sigma_deg, self.gate_chi2,
-                  self.track_max_sigma, self.track_max_sigma_deg, self.drift_m)  # fmt: skip
+                  self.track_max_sigma, self.track_max_sigma_deg, self.drift_m, self.init_view_m,
+                  self.init_view_deg, self.init_score)  # fmt: skip
         if min(values) <= 0 or min(self.kidnap_fixes, self.init_fixes, self.max_support) < 1:
             raise ValueError(
                 f"EKF noise and thresholds must be positive, kidnap_fixes, init_fixes and "
@@ -320,6 +331,22 @@ class EKFConfig:
         return np.diag([self.fix_sigma**2, self.fix_sigma**2, np.radians(self.fix_sigma_deg) ** 2])
 
 
+#: How many perceived poses before the first estimate :class:`EKFState` keeps (the latest).
+CANDIDATES = 30
+
+
+@dataclass
+class _Candidate:
+    """A perceived pose before the first estimate, carried by the odometry since: ``pose`` (x, y,
+    yaw) and covariance ``P`` now, ``moved`` metres travelled and ``turned`` radians (signed net
+    rotation) since it was perceived."""
+
+    pose: NDArray[np.float64]
+    P: NDArray[np.float64]
+    moved: float = 0.0
+    turned: float = 0.0
+
+
 class EKFState:
     """An extended Kalman filter over the planar pose (x, y, yaw) in W (the "temporal" mode).
 
@@ -330,9 +357,10 @@ class EKFState:
     nothing when its image did not change either. Measurements: perceived poses
     with covariance ``config.fix_covariance``, Mahalanobis-gated (no :class:`PoseGate`: the perceiver
     is not constrained, so that fixes contradicting the estimate still reach :meth:`correct` for
-    kidnapping detection). Before the first estimate (``config.init_fixes`` consistent fixes) the
-    estimate is the fallback placeholder with an unbounded covariance. Estimates are clipped to
-    [``low``, ``high``].
+    kidnapping detection). Before the first estimate (``config.init_fixes`` consistent fixes from
+    views at least ``config.init_view_m`` / ``init_view_deg`` apart, or one fix scoring
+    ``config.init_score``) the estimate is the fallback placeholder with an unbounded covariance.
+    Estimates are clipped to [``low``, ``high``].
     """
 
     def __init__(
@@ -360,6 +388,7 @@ class EKFState:
         self._candidate_P = np.zeros((3, 3))
         self._candidate_count = 0
         self._support = 0  # the fixes that set the estimate and those accepted since (capped)
+        self._pool: list[_Candidate] = []  # the fixes before the first estimate (the latest)
 
     @property
     def estimate(self) -> NDArray[np.float64]:
@@ -394,6 +423,7 @@ class EKFState:
         self._fix = "none"
         self._candidate, self._candidate_count = None, 0
         self._support = 0
+        self._pool = []
 
     def _motion(self, action: int | NDArray | None, blocked: bool, stalled: bool):
         """The commanded ``action`` as a motion (forward m, left m, yaw rad) in the robot frame with
@@ -430,6 +460,8 @@ class EKFState:
                 self._P = self._P + Q
             if self._candidate is not None:
                 self._candidate_P = self._candidate_P + Q
+            for c in self._pool:
+                c.P = c.P + Q
             return
         self.predict_odometry(*motion)
 
@@ -454,6 +486,9 @@ class EKFState:
             self._x, self._P = self._odometry(self._x, self._P, d, Q)
         if self._candidate is not None:
             self._candidate, self._candidate_P = self._odometry(self._candidate, self._candidate_P, d, Q)
+        for c in self._pool:
+            c.pose, c.P = self._odometry(c.pose, c.P, d, Q)
+            c.moved, c.turned = c.moved + float(np.hypot(d[0], d[1])), c.turned + float(d[2])
 
     def _odometry(self, x: NDArray[np.float64], P: NDArray[np.float64], d: NDArray[np.float64], Q_d):
         c, s = np.cos(x[2]), np.sin(x[2])
@@ -467,12 +502,7 @@ class EKFState:
         return None
 
     def tracking_pose(self) -> NDArray[np.float64] | None:
-        cfg = self.config
-        if not self._have_fix:
-            return None
-        position_sigma = float(np.sqrt(np.linalg.eigvalsh(self._P[:2, :2]).max()))
-        yaw_sigma = float(np.degrees(np.sqrt(self._P[2, 2])))
-        if position_sigma > cfg.track_max_sigma or yaw_sigma > cfg.track_max_sigma_deg:
+        if not self._have_fix or _too_uncertain(self._P, self.config):
             return None
         return self.estimate
 
@@ -482,7 +512,7 @@ class EKFState:
             return float("inf")
         return _mahalanobis2(measured, self._x, self._P + self.config.fix_covariance)
 
-    def correct(self, measured: NDArray[np.float64] | None) -> None:
+    def correct(self, measured: NDArray[np.float64] | None, score: float = 0.0) -> None:
         cfg = self.config
         if measured is None:
             self._fix = "none"
@@ -500,23 +530,40 @@ class EKFState:
             self._candidate, self._candidate_count = None, 0
             self._support = min(self._support + 1, self.config.max_support)
             return
+        if not self._have_fix:
+            self._first_estimate(z, score)
+            return
         agrees = (
             self._candidate is not None
             and _mahalanobis2(z, self._candidate, self._candidate_P + R) <= cfg.gate_chi2
         )
         self._candidate_count = self._candidate_count + 1 if agrees else 1
         self._candidate, self._candidate_P = z, R.copy()
-        if not self._have_fix:
-            self._fix = "unconfirmed"
-            if self._candidate_count >= cfg.init_fixes:
-                self._take(z)
-            return
         self._fix = "rejected"
         drifted = float(np.linalg.norm(z[:2] - self._x[:2])) <= cfg.drift_m
         needed = cfg.kidnap_fixes if drifted else max(cfg.kidnap_fixes, self._support + 1)
         if self._candidate_count >= needed:
             logger.debug("kidnapping: %d consistent fixes off the estimate", self._candidate_count)
             self._take(z)
+
+    def _first_estimate(self, z: NDArray[np.float64], score: float) -> None:
+        """Before the first estimate: start it at the fix ``z`` when its ``score`` is strong, or when
+        ``init_fixes`` kept fixes (``z`` included) agree with it under the odometry and one of them
+        is from another view (see :class:`EKFConfig`); else keep ``z`` (the latest
+        :data:`CANDIDATES`). Kept fixes whose odometry became too uncertain to confirm are dropped."""
+        cfg, R = self.config, self.config.fix_covariance
+        self._pool = [c for c in self._pool if not _too_uncertain(c.P, cfg)]
+        agreeing = [c for c in self._pool if _mahalanobis2(z, c.pose, c.P + R) <= cfg.gate_chi2]
+        other_view = any(
+            c.moved >= cfg.init_view_m or abs(c.turned) >= np.radians(cfg.init_view_deg) for c in agreeing
+        )
+        self._fix = "unconfirmed"
+        if score >= cfg.init_score or (other_view and len(agreeing) + 1 >= cfg.init_fixes):
+            self._candidate_count = len(agreeing) + 1
+            self._take(z)
+            self._pool = []
+            return
+        self._pool = [*self._pool, _Candidate(z.copy(), R.copy())][-CANDIDATES:]
 
     def _take(self, z: NDArray[np.float64]) -> None:
         """Set the estimate to the fix ``z`` (first estimate or relocalization); the consistent
@@ -526,6 +573,14 @@ class EKFState:
         self._fix = "reset"
         self._support = min(self._candidate_count, self.config.max_support)
         self._candidate, self._candidate_count = None, 0
+
+
+def _too_uncertain(P: NDArray[np.float64], cfg: EKFConfig) -> bool:
+    """Whether covariance ``P`` is beyond tracking: position standard deviation (largest axis) above
+    ``cfg.track_max_sigma`` or the yaw's above ``cfg.track_max_sigma_deg``."""
+    position_sigma = float(np.sqrt(np.linalg.eigvalsh(P[:2, :2]).max()))
+    yaw_sigma = float(np.degrees(np.sqrt(P[2, 2])))
+    return position_sigma > cfg.track_max_sigma or yaw_sigma > cfg.track_max_sigma_deg
 
 
 def _innovation(z: ArrayLike, x: NDArray[np.float64]) -> NDArray[np.float64]:
