@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from vgpnav_env.eval.report import plot_cdf
 
@@ -157,6 +158,7 @@ def summary_figure(records: list[EpisodeRecord], success_distance: float) -> Fig
     lost = [r.metrics.get("lost_fraction") or 0.0 for r in records]
     colours = ["tab:green" if r.failure is None else "tab:red" for r in records]
     right.bar([r.index for r in records], lost, color=colours)
+    right.xaxis.set_major_locator(MaxNLocator(integer=True))
     right.set_xlabel("episode (green success, red failure)")
     right.set_ylabel("lost fraction of frames")
     right.set_ylim(0, 1)

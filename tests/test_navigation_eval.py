@@ -220,3 +220,15 @@ def test_astar_with_privileged_perception_reports_localization(home_database, ho
     assert report["mean_localization_error_m"] < 0.05  # noise-free privileged backbone
     assert report["records"][0]["estimated_trajectory"] is not None
     assert report["success_rate"] == 1.0
+
+
+def test_summary_figure_marks_whole_episodes():
+    from dataclasses import replace
+
+    from vgpnav_env.eval.navigation_plots import summary_figure
+
+    records = [replace(_record(True, None, 0.1), index=i) for i in range(20)]
+    fig = summary_figure(records, success_distance=0.5)
+    fig.canvas.draw()
+    ticks = fig.axes[1].get_xticks()
+    assert len(ticks) >= 3 and np.allclose(ticks, np.round(ticks))
