@@ -40,8 +40,10 @@ def _ground_truth_panel(ax: Any, env: gym.Env, record: EpisodeRecord) -> None:
     ax.plot(traj[:, 0], traj[:, 1], "-", color=_TRUE, lw=1.5, label="true")
     if record.estimated_trajectory:
         est = np.asarray(record.estimated_trajectory)
-        ax.plot(est[:, 0], est[:, 1], "--", color=_ESTIMATE, lw=1.0, label="estimated")
-        lost = ~np.asarray(record.frames.get("localized", [True] * len(est)), bool)
+        have = ~np.asarray(record.frames.get("no_estimate", [False] * len(est)), bool)
+        lost = ~np.asarray(record.frames.get("localized", [True] * len(est)), bool) & have
+        est_line = est[have]
+        ax.plot(est_line[:, 0], est_line[:, 1], "--", color=_ESTIMATE, lw=1.0, label="estimated")
         if lost.any():
             ax.plot(est[lost, 0], est[lost, 1], ".", color=_LOST, ms=3, label="lost (odometry)")
     if record.collision_steps:

@@ -232,3 +232,29 @@ def test_summary_figure_marks_whole_episodes():
     fig.canvas.draw()
     ticks = fig.axes[1].get_xticks()
     assert len(ticks) >= 3 and np.allclose(ticks, np.round(ticks))
+
+
+def test_estimated_trajectory_leaves_out_frames_before_the_first_estimate():
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from matplotlib.figure import Figure
+
+    from vgpnav_env.eval.navigation_plots import _ground_truth_panel
+
+    shape = (20, 20)
+    spec = SimpleNamespace(shape=shape, bounds=((0.0, 0.0), (2.0, 2.0)))
+    truth = SimpleNamespace(spec=spec, free=np.ones(shape, bool), obstacle=np.zeros(shape, bool))
+    base = SimpleNamespace(ground_truth=truth, world=SimpleNamespace(navigable=np.ones(shape, bool)),
+                           success_distance=0.5)  # fmt: skip
+    # Two placeholder poses at (9, 9) before the first estimate, then three estimated frames.
+    estimated = [[9.0, 9.0, 0.0]] * 2 + [[0.5, 0.5, 0.0], [0.6, 0.5, 0.0], [0.7, 0.5, 0.0]]
+    no_estimate, localized = [True, True, False, False, False], [False, False, True, False, True]
+    frames = {"no_estimate": no_estimate, "localized": localized}
+    record = replace(_record(True, None, 0.1, frames), trajectory=[[0.5, 0.5, 0.0]] * 6,
+                     estimated_trajectory=estimated)  # fmt: skip
+    ax = Figure().subplots()
+    _ground_truth_panel(ax, SimpleNamespace(unwrapped=base), record)
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert list(lines["estimated"].get_xdata()) == [0.5, 0.6, 0.7]
+    assert list(lines["lost (odometry)"].get_xdata()) == [0.6]
