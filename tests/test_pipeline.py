@@ -387,3 +387,23 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
         PoseGate(base_pose(T), 0.0, 1.0)
     with pytest.raises(ValueError, match="planar"):
         PoseGate(T, 0.5, 1.0)
+
+
+def test_only_a_verified_pose_anchors_the_ground(database: Database, query) -> None:
+    """Home seed 3: poses at reset 1 m off set the floor 0.52 m too high and every right pose after
+    failed the height check. Poses verification rejects (here: pitch outside the mount's range)
+    must leave the ground unanchored; the first verified pose anchors it."""
+    run, depth = query
+    reject = VerifyConfig(pitch_range_deg=(80.0, 90.0))
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT, verify=reject)
+    perceiver = Perceiver(database, SimulatedBackbone(seed=0), config=config)
+    lifted = run.poses[0].copy()
+    lifted[2, 3] += 0.5  # the reset views' poses put the camera 0.5 m too high
+    first = perceiver.initialize(run.images[0], Privileged(lifted, np.zeros((0, 4, 4)), depth[0]))[0]
+    assert not first.localized and not perceiver.initialized
+    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
+    assert not perceiver.perceive(run.images[1], priv[1]).localized and not perceiver.initialized
+    perceiver.config = replace(config, verify=VerifyConfig())
+    result = perceiver.perceive(run.images[2], priv[2])
+    assert result.localized and perceiver.initialized, result.detail
+    assert abs(perceiver.anchor.z_ground) < 0.01  # the floor, not 0.5 m above it

@@ -70,6 +70,7 @@ from vgpnav_env.perception.verify import (
     VerifyConfig,
     check_height,
     check_scale,
+    pair_support,
     pooled_pairs,
     reference_support,
     rival_pairs,
@@ -437,11 +438,15 @@ class Perceiver:
             refs, out = pooled_pairs(refs, out, *loc.other)
         T_wi = self.database.poses[refs]
         cfg = self.config
-        support = reference_support(pose.T_wc, T_wi, out, self.camera, cfg.verify)
-        support = rival_pairs(support, T_wi, out, self.camera, cfg.verify)
+        v = cfg.verify
+        # The pairs' own support (one epipolar count per pair) serves both rules that need it.
+        uses_own = v.rival_claim_ratio is not None or v.min_explained_confidence is not None
+        own = pair_support(T_wi, out, self.camera, v) if uses_own else None
+        support = reference_support(pose.T_wc, T_wi, out, self.camera, v)
+        support = rival_pairs(support, T_wi, out, self.camera, v, own)
         rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
         camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
-        return verify_pose(pose.T_wc, T_wi, out, self.camera, cfg.verify, rivals=rivals, camera_z=camera_z)
+        return verify_pose(pose.T_wc, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
 
     def _localize(
         self,

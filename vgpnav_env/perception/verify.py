@@ -320,19 +320,20 @@ def explained_confidence(
     camera: PinholeCamera,
     config: VerifyConfig,
     support: NDArray[np.int64] | None = None,
+    own: NDArray[np.int64] | None = None,
 ) -> float:
     """The share in [0, 1] of the backbone's pair confidence that the pose ``T_wq`` explains:
     ``sum_i c_i min(1, s_i / o_i) / sum_i c_i`` over the pairs with confidence ``c_i > 0``, where
     ``s_i`` counts the matches of pair i the pose explains (:func:`reference_support`; ``support``
-    when already computed) and ``o_i`` those the pair's own relative pose ``T_iq`` explains (its
-    matches' count for a backbone without matches). 0 when no pair has confidence.
+    when already computed) and ``o_i`` those the pair's own relative pose ``T_iq`` explains
+    (:func:`pair_support`; ``own`` when already computed). 0 when no pair has confidence.
     """
     c = np.asarray(out.confidence, float)
     pairs = np.flatnonzero(c > 0)
     if len(pairs) == 0:
         return 0.0
     s = reference_support(T_wq, T_wi, out, camera, config) if support is None else np.asarray(support)
-    own = pair_support(T_wi, out, camera, config)[pairs]
+    own = (pair_support(T_wi, out, camera, config) if own is None else np.asarray(own))[pairs]
     share = np.minimum(s[pairs] / np.maximum(own, 1.0), 1.0)
     return float((c[pairs] * share).sum() / c[pairs].sum())
 
@@ -379,6 +380,7 @@ def verify_pose(
     *,
     rivals: Sequence[NDArray[np.float64]] = (),
     camera_z: float = float("nan"),
+    own: NDArray[np.int64] | None = None,
 ) -> Verdict:
     """Check the pose ``T_wq`` (metric, W) against the query's matches with references ``T_wi``
     (k, 4, 4; ``out``: the backbone output of the query with exactly these references).
@@ -457,7 +459,7 @@ def verify_pose(
             f"against {strength}",
         )
     if config.min_explained_confidence is not None:
-        share = explained_confidence(T_wq, T_wi, out, camera, config, raw)
+        share = explained_confidence(T_wq, T_wi, out, camera, config, raw, own)
         if share < config.min_explained_confidence:
             return verdict("unverified", f"the pose explains {share:.0%} of the pairs' confidence")
     return verdict("", f"{n} references, support {strength}, rival {rival_strength}")
@@ -528,14 +530,17 @@ def rival_pairs(
     out: BackboneOutput,
     camera: PinholeCamera,
     config: VerifyConfig,
+    own: NDArray[np.int64] | None = None,
 ) -> NDArray[np.int64]:
     """``support`` (k,) of a pose (0 where under ``min_support_matches``), also 0 where the pose
     explains fewer than ``rival_claim_ratio`` of the matches the pair's own relative pose explains
-    (:func:`pair_support`): the pairs :func:`rival_poses` makes rivals of."""
+    (:func:`pair_support`; ``own`` when already computed): the pairs :func:`rival_poses` makes
+    rivals of."""
     support = np.where(support >= config.min_support_matches, support, 0)
     if config.rival_claim_ratio is None:
         return support
-    weak = support < config.rival_claim_ratio * pair_support(T_wi, out, camera, config)
+    own = pair_support(T_wi, out, camera, config) if own is None else own
+    weak = support < config.rival_claim_ratio * own
     return np.where(weak, 0, support)
 
 
