@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -387,6 +388,33 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
         PoseGate(base_pose(T), 0.0, 1.0)
     with pytest.raises(ValueError, match="planar"):
         PoseGate(T, 0.5, 1.0)
+
+
+def test_the_map_floor_checks_the_pose_that_anchors_the_ground(database: Database, query) -> None:
+    """Hospital:1 seed 2: a verified single-pair pose with the camera 0.50 m too high anchored the
+    floor there, and every right pose after it failed the camera-height check. A pose (at reset or
+    the first verified one) whose camera the database's floor puts off the calibrated height by
+    more than the tolerance (0.3 m) anchors nothing; a right pose then anchors the floor."""
+    run, depth = query
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
+    lifted = [replace(p, T_wq=p.T_wq.copy()) for p in priv]
+    for p in lifted:
+        p.T_wq[2, 3] += 0.5  # the simulated backbone puts every camera 0.5 m too high
+    perceiver = Perceiver(database, SimulatedBackbone(seed=0), config=config)
+    first = perceiver.initialize(run.images[0], lifted[0])[0]
+    assert not first.localized and not perceiver.initialized
+    for result in (first, perceiver.perceive(run.images[1], lifted[1])):  # at reset, then later
+        off = re.search(r"camera height off by ([-+.\d]+) m", result.detail)
+        assert result.reason == "unverified" and off, result.detail
+        assert abs(float(off.group(1)) - 0.5) < 0.05  # against the database's floor (within 5 cm of 0)
+    assert not perceiver.initialized
+    result = perceiver.perceive(run.images[2], priv[2])
+    assert result.localized and abs(perceiver.anchor.z_ground) < 0.01, result.detail
+    # Without a floor from the database (no prior map) the first verified pose anchors as before.
+    unknown = Perceiver(replace(database, z_ground=float("nan")), SimulatedBackbone(seed=0), config=config)
+    assert unknown.initialize(run.images[0], lifted[0])[0].localized
+    assert abs(unknown.anchor.z_ground - 0.5) < 0.01
 
 
 def test_only_a_verified_pose_anchors_the_ground(database: Database, query) -> None:
