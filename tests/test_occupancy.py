@@ -104,3 +104,30 @@ def test_egocentric_crop_faces_up(yaw: float) -> None:
     coarse = m.egocentric_crop(x, y, yaw, size_cells=31, resolution=0.1)
     assert np.abs(np.argwhere(coarse == OCCUPIED).min(0)[0] - 10) <= 1
     assert (m.egocentric_crop(50.0, 50.0, yaw, 11) == UNKNOWN).all()
+
+
+@pytest.mark.parametrize("yaw", [0.0, 2.0])
+def test_a_felt_contact_marks_a_segment_across_the_heading(yaw: float) -> None:
+    m = LogOddsMap(SPEC)
+    m.logodds[:] = -1.0  # seen free before
+    pose = np.array([1.0, 1.0, yaw])
+    m.mark_contact(pose, radius=0.2)
+    marked = np.argwhere(m.logodds == m.clamp[1])
+    xy = SPEC.cell_to_world(marked) - pose[:2]
+    ahead = xy @ [np.cos(yaw), np.sin(yaw)]
+    across = xy @ [-np.sin(yaw), np.cos(yaw)]
+    # Half a cell (0.025 m) beyond the 0.2 m radius, +-0.1 m across; cell centres within half a
+    # cell's diagonal of the segment; spanning the width (4 or more cells of 0.05 m).
+    assert np.all(np.abs(ahead - 0.225) <= 0.036) and np.all(np.abs(across) <= 0.1 + 0.036)
+    assert across.min() < -0.05 and across.max() > 0.05 and len(marked) >= 4
+    assert (m.logodds == -1.0).sum() == m.logodds.size - len(marked)
+    assert m.occupied().sum() == len(marked)
+    m.mark_contact([50.0, 50.0, 0.0], radius=0.2)  # off the map: nothing changes
+    assert (m.logodds == m.clamp[1]).sum() == len(marked)
+    # A band as deep as a coarser crop's pixel shows in that crop, whatever its alignment.
+    for x in np.linspace(1.0, 1.1, 7):
+        m = LogOddsMap(SPEC)
+        m.mark_contact([x, 1.0, yaw], radius=0.2, depth=0.1)
+        crop = m.egocentric_crop(x, 1.0, yaw, size_cells=21, resolution=0.1)
+        assert (crop[10 - 3 : 10 - 1, 9:12] == OCCUPIED).any()  # 0.2-0.3 m ahead
+        assert (crop[:6] != OCCUPIED).all() and (crop[9:] != OCCUPIED).all()

@@ -158,6 +158,32 @@ def test_map_starts_from_the_base_layout_and_fuses_depth():
     env.close()
 
 
+def test_a_blocked_forward_step_marks_the_felt_obstacle_in_the_map():
+    """Home seed 0 starts facing a wall. Without the prior (and with the depth of the wall hidden,
+    as a randomised episode's unseen cells hide it) the map holds nothing ahead until the robot
+    bumps: the bump marks the cells ahead occupied; a turn marks nothing."""
+    env = ModelObservation(
+        gym.make(ENV_ID, scene="home", image_size=SIZE, render_rgb=False, max_steps=60), prior=False
+    )
+    obs, _ = env.reset(seed=0)
+    env.unseen = np.ones(env.fused_map.spec.shape, bool)
+    centre = obs["map"].shape[-1] // 2
+    obs, _, _, _, info = env.step(2)  # a turn: nothing felt
+    assert not info["blocked"] and (env.fused_map.logodds < env.fused_map.clamp[1]).all()
+    obs, _, _, _, info = env.step(3)
+    obs, _, _, _, info = env.step(1)
+    assert info["blocked"]
+    front = obs["map"][0, centre - 4 : centre - 1, centre - 1 : centre + 1]  # 0.15-0.35 m ahead
+    assert (front == OCCUPIED).any(), obs["map"][0, centre - 5 : centre + 1, centre - 3 : centre + 3]
+    marked = np.argwhere(env.fused_map.logodds == env.fused_map.clamp[1])
+    ahead = (env.fused_map.spec.cell_to_world(marked) - env.estimate[:2]) @ [
+        np.cos(env.estimate[2]),
+        np.sin(env.estimate[2]),
+    ]
+    assert len(marked) >= 3 and np.all(np.abs(ahead - 0.25) < 0.1)
+    env.close()
+
+
 def test_calibrate_reads_the_builds_query_depth(home_build):
     """``calibrate`` bins the records by the median ground-truth depth of their query views."""
     from vgpnav_env.eval.calibrate import calibrate

@@ -12,6 +12,7 @@ from scipy import ndimage
 
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
+from vgpnav_env.perception.occupancy import OCCUPIED
 from vgpnav_env.perception.state import EKFConfig
 from vgpnav_env.wrappers import VGPNavObservation
 
@@ -243,7 +244,7 @@ def test_bumped_forward_steps_move_the_dead_reckoned_pose_half_a_step_or_not_at_
     """Driving into a wall by dead reckoning: free steps move the estimate 0.25 m; a step the bump
     sensor (``env.unwrapped.bumped``) reports moves it half a step (it ended anywhere along the step),
     or nothing when the image did not change either (a push); the estimate stays within half a
-    step of the true pose."""
+    step of the true pose. Only a bump marks the map: occupied cells just ahead of the estimate."""
     backbone = FlakyBackbone()
     env = VGPNavObservation(gym.make(ENV_ID, scene="home", image_size=HOME_SIZE), backbone, database=database)
     obs, info = env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
@@ -258,9 +259,12 @@ def test_bumped_forward_steps_move_the_dead_reckoned_pose_half_a_step_or_not_at_
         if not info["blocked"]:
             moved += 1
             assert step == pytest.approx(0.25, abs=1e-4)
+            assert (env.fused_map.logodds < env.fused_map.clamp[1]).all()  # nothing felt yet
         else:
             bumped.append(round(step, 4))
             assert step == pytest.approx(0.125, abs=1e-4) or step < 1e-6
+            # What the bump felt is in the map, ahead of the estimate: the crop shows it.
+            assert (obs["map"][0, 28:31, 30:34] == OCCUPIED).any()  # 0.15-0.35 m ahead
             if len(bumped) == 3:
                 break
         assert np.linalg.norm(obs["pose"][:2] - info["pose"][:2]) < 0.125 + 0.01

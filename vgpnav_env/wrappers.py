@@ -24,6 +24,12 @@ The observation:
 - ``goal_rel``: (distance m, bearing rad counter-clockwise from the estimated heading) of the goal.
 - ``map``: egocentric crop of the fused occupancy map (``S`` x ``S`` pixels of ``map_resolution``
   metres, row 0 ahead, columns to the right; 255 occupied, 128 free, 0 unknown), channels first.
+  A discrete forward step the bump sensor reports blocked marks what it felt, a band across the
+  heading just beyond the robot's radius from the estimated pose, occupied in the fused map
+  (:meth:`~vgpnav_env.perception.occupancy.LogOddsMap.mark_contact`; :func:`felt_contact`): the
+  reconstruction misses low, plain or close furniture, and without the mark a policy pushing into
+  such an obstacle saw the same free crop at every step (home seed 3, classical pixels, lost
+  against a table: ``ppo_200000_steps`` pushed forward on 460 of 500 steps).
 - ``localized``: 1 if this frame's perceived pose was taken in by the pose state, 0 if the pose was
   carried forward (lost, or a perceived pose the EKF rejected).
 
@@ -83,7 +89,7 @@ from vgpnav_env.perception.state import (
     OdometryState,
     PoseState,
 )
-from vgpnav_env.robot import FOVY_DEG, base_pose
+from vgpnav_env.robot import FOVY_DEG, Action, base_pose
 
 logger = logging.getLogger(__name__)
 
@@ -127,6 +133,13 @@ def navigation_space(base: gym.Env, map_size: int) -> spaces.Dict:
             "localized": spaces.Discrete(2),
         }
     )
+
+
+def felt_contact(env: gym.Env, action: Any) -> bool:
+    """Whether ``action`` was a discrete forward step that the bump sensor of ``env`` (the point-goal
+    env, ``env.unwrapped.bumped``) found blocked: something the robot touched lies ahead."""
+    base = env.unwrapped
+    return base.action_mode == "discrete" and base.bumped and int(action) == Action.FORWARD
 
 
 def navigation_observation(
@@ -303,6 +316,10 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.pose_state.predict(action, obs["rgb"], bumped=self.env.unwrapped.bumped)
+        if self.pose_state.has_estimate and felt_contact(self.env, action):
+            self.perceiver.map.mark_contact(
+                self.pose_state.estimate, self.env.unwrapped.robot_radius, depth=self.map_resolution
+            )
         privileged = self._privileged(info["T_wc"], info["depth"])
         predicted = self.pose_state.tracking_pose()
         result = self.perceiver.perceive(

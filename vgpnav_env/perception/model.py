@@ -24,7 +24,8 @@ those frames. :class:`ModelObservation` then replaces the pixel pipeline of
   ``coverage`` fraction of them, Gaussian noise of ``depth_noise_m`` along the optical axis,
   fitted from the measured Acc) placed with the *estimated* pose, into a log-odds map that starts
   from the ground truth of the database's ``base`` layout clamped to +-2 (an idealised database
-  prior; the pixel wrapper's prior is reconstructed from the database images).
+  prior; the pixel wrapper's prior is reconstructed from the database images). A blocked forward
+  step marks what it felt ahead of the estimate, as the pixel wrapper does.
 
 - **Randomised** (``randomize=True``, a training-time option; the evaluation default is off): the
   statistics of the pixel wrapper in navigation, which differ from the query-run calibration. The
@@ -484,6 +485,12 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.estimate = self.estimate + np.array([c * dx - s * dy, s * dx + c * dy, turn])
         self.estimate[2] = wrap_angle(self.estimate[2])
         self._true = true
+        from vgpnav_env.wrappers import felt_contact
+
+        if self.has_estimate and felt_contact(self.env, action):
+            self.fused_map.mark_contact(
+                self.estimate, self.env.unwrapped.robot_radius, depth=self.map_resolution
+            )
         new_obs, info = self._observe(obs, info, action=action)
         return new_obs, reward, terminated, truncated, info
 

@@ -187,6 +187,29 @@ class LogOddsMap:
         np.clip(self.logodds, *self.clamp, out=self.logodds)
         return classes
 
+    def mark_contact(
+        self, pose: ArrayLike, radius: float, half_width: float | None = None, depth: float | None = None
+    ) -> None:
+        """Mark what a blocked forward step felt: the cells of a band across the heading, the centres
+        of its nearest cells half a cell beyond ``radius`` m ahead of the robot's centre and of its
+        farthest ``depth`` m farther (default 0: one cell deep; an egocentric crop's coarser
+        ``resolution`` makes the band a cell deeper than the crop's pixels, so that their
+        nearest-cell sampling cannot step over it), ``half_width`` m (default: half the radius) to
+        each side, set to the clamp's upper bound. ``pose``: the robot's (x, y, yaw) in W (m, rad).
+        Frames that later see those cells free lower them as any other cell's evidence.
+        """
+        x, y, yaw = np.asarray(pose, float)
+        res = self.spec.resolution
+        half = 0.5 * radius if half_width is None else float(half_width)
+        deep = 0.0 if depth is None else max(0.0, float(depth))  # between the outer cells' centres
+        lateral = np.linspace(-half, half, 2 * int(np.ceil(half / (0.5 * res))) + 1)
+        ahead = radius + 0.5 * res + np.linspace(0.0, deep, int(np.ceil(deep / (0.5 * res))) + 1)
+        heading, left = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
+        band = ahead[:, None, None] * heading + lateral[None, :, None] * left
+        cells = self.spec.world_to_cell(np.array([x, y]) + band.reshape(-1, 2))
+        cells = cells[self.spec.contains(cells)]
+        self.logodds[cells[:, 0], cells[:, 1]] = self.clamp[1]
+
     def probability(self) -> NDArray[np.float32]:
         """Occupancy probability per cell, 0.5 where unknown."""
         return (1.0 / (1.0 + np.exp(-self.logodds))).astype(np.float32)
