@@ -227,7 +227,10 @@ class FrameRecord:
     ``confidence``: the verification's confidence in the pose (0 when lost);
     ``candidate_confidence``: its confidence before any rejection (nan without a verdict).
     ``source``: where the references came from (``tracking`` around the predicted pose, or
-    ``global`` retrieval). Temporal mode only: ``fix``, what the EKF did with the frame's pose
+    ``global`` retrieval). ``gate``: what rejected a lost frame, its ``reason`` or, when the
+    verification rejected its pose as unverified, ``unverified: <check>``
+    (:data:`~vgpnav_env.perception.verify.VERIFY_CHECKS`); "" when localized. Temporal mode
+    only: ``fix``, what the EKF did with the frame's pose
     (:data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), and ``estimate_error_m``, the horizontal
     error of the EKF's estimate after the frame (nan before its first estimate), and
     ``visual_odometry``, whether visual odometry refined the motion into the frame.
@@ -257,6 +260,7 @@ class FrameRecord:
     fix: str = ""
     estimate_error_m: float = float("nan")
     visual_odometry: bool = False
+    gate: str = ""
 
     @property
     def gross(self) -> bool:
@@ -625,7 +629,18 @@ def _record(
         references=[int(j) for j in result.references],
         confidence=result.confidence,
         candidate_confidence=result.verdict.score if result.verdict is not None else float("nan"),
+        gate=_gate(result),
     )
+
+
+def _gate(result: PerceptionResult) -> str:
+    """:attr:`FrameRecord.gate` of a result."""
+    if result.localized:
+        return ""
+    verdict = result.verdict
+    if result.reason == "unverified" and verdict is not None and verdict.check:
+        return f"unverified: {verdict.check}"
+    return result.reason
 
 
 def _stats(values: NDArray[np.float64]) -> tuple[float, float]:
@@ -653,6 +668,25 @@ def confidence_roc(records: list[FrameRecord]) -> tuple[NDArray[np.float64], NDA
     return fpr, tpr, auc
 
 
+#: How far a lost frame's rejected pose was from the truth: class -> meaning (:func:`candidate_class`).
+CANDIDATE_CLASSES = {
+    "right": "within 5 cm and 5 deg",
+    "near": "within 0.5 m and 10 deg (not right)",
+    "wrong": "more than 0.5 m or 10 deg off",
+    "no pose": "no pose was estimated",
+}
+
+
+def candidate_class(translation_m: float, rotation_deg: float) -> str:
+    """The :data:`CANDIDATE_CLASSES` name of a pose error (metres, degrees; nan: no pose)."""
+    if not (np.isfinite(translation_m) and np.isfinite(rotation_deg)):
+        return "no pose"
+    if is_gross(translation_m, rotation_deg):
+        return "wrong"
+    tm, deg = RECALL_THRESHOLDS["recall_5cm_5deg"]
+    return "right" if translation_m <= tm and rotation_deg <= deg else "near"
+
+
 def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
     """Localization metrics of a query run (DESIGN.md "Metrics").
 
@@ -660,16 +694,20 @@ def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
     ``lost_rate``, ``lost_by_reason`` and ``retrieval_recall``. Over localized queries: median
     and mean translation / rotation errors, ``n_gross`` and ``gross_rate`` (:data:`GROSS_ERROR`).
     ``confidence_auc``: :func:`confidence_roc`; ``n_rejected_right``: lost frames whose rejected
-    pose was right (within 0.25 m and 2 deg), the price of the verification.
+    pose was right (within 0.25 m and 2 deg), the price of the verification. ``lost_by_gate``:
+    lost frames per :attr:`FrameRecord.gate`, split by their rejected pose (:data:`CANDIDATE_CLASSES`).
     """
     n = len(records)
     t = np.array([r.translation_m for r in records], float)
     rdeg = np.array([r.rotation_deg for r in records], float)
     ok = np.array([r.status == "localized" for r in records], bool)
     lost_by_reason: dict[str, int] = {}
+    lost_by_gate: dict[str, dict[str, int]] = {}
     for r in records:
         if r.status != "localized":
             lost_by_reason[r.reason] = lost_by_reason.get(r.reason, 0) + 1
+            gate = lost_by_gate.setdefault(r.gate or r.reason, dict.fromkeys(CANDIDATE_CLASSES, 0))
+            gate[candidate_class(r.candidate_translation_m, r.candidate_rotation_deg)] += 1
     median_t, mean_t = _stats(t[ok])
     median_r, mean_r = _stats(rdeg[ok])
     n_gross = int(is_gross(t[ok], rdeg[ok]).sum())
@@ -679,6 +717,7 @@ def localization_metrics(records: list[FrameRecord]) -> dict[str, Any]:
         "n_lost": int(n - ok.sum()),
         "lost_rate": float((n - ok.sum()) / n) if n else float("nan"),
         "lost_by_reason": dict(sorted(lost_by_reason.items())),
+        "lost_by_gate": dict(sorted(lost_by_gate.items())),
         "n_gross": n_gross,
         "gross_rate": float(n_gross / ok.sum()) if ok.any() else float("nan"),
         "median_translation_m": median_t,

@@ -25,6 +25,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
+    CANDIDATE_CLASSES,
     GROSS_ERROR,
     RECALL_THRESHOLDS,
     FrameRecord,
@@ -44,6 +45,7 @@ from vgpnav_env.eval.report import (
 )
 from vgpnav_env.eval.workers import Workers, workers_from_args
 from vgpnav_env.perception.pipeline import LOST_REASONS
+from vgpnav_env.perception.verify import VERIFY_CHECKS
 from vgpnav_env.runs import load_build
 
 #: One scene's evaluation: (metrics incl. ``records``, figures by file name) of a query run, its
@@ -163,10 +165,17 @@ def frame_table(records: Sequence[FrameRecord]) -> str:
 
 
 def lost_table(metrics: dict[str, Any]) -> str:
-    lost = metrics["lost_by_reason"]
+    """The lost queries per gate (``lost_by_gate``: the reason, or the verification check that
+    rejected the pose) with how far the rejected pose was from the truth."""
+    lost = metrics["lost_by_gate"]
     if not lost:
         return "No query was lost."
-    return "## Lost queries by reason\n\n" + markdown_table(["reason", "count"], sorted(lost.items()))
+    rows = [(gate, sum(n.values()), *(n[c] for c in CANDIDATE_CLASSES)) for gate, n in lost.items()]
+    header = ["reason", "count", *(f"{c} ({meaning})" for c, meaning in CANDIDATE_CLASSES.items())]
+    return (
+        "## Lost queries by reason\n\nThe gate that rejected each lost query and how far its rejected "
+        "pose was from the true one.\n\n" + markdown_table(header, rows)
+    )
 
 
 #: The gross-error rate a trusted pose may have (issue 8's target): :func:`trust_metrics`.
@@ -251,6 +260,11 @@ def scene_report(
     ]
     labels = {"localized": "the pipeline returned a verified metric pose"}
     labels |= {f"lost: {reason}": meaning for reason, meaning in LOST_REASONS.items()}
+    labels |= {
+        f"lost: unverified: {check}": meaning
+        for check, meaning in VERIFY_CHECKS.items()
+        if check != "ambiguity"
+    }
     labels["gross"] = "a localized frame more than {:g} m or {:g} deg off the true pose".format(*GROSS_ERROR)
     write_report(out, f"{title}: {scene}", metrics, parts, figures, settings=settings, labels=labels)
 

@@ -107,6 +107,7 @@ def test_metrics_expose_a_planted_gross_error() -> None:
     assert m["recall_50cm_5deg"] == pytest.approx(3 / 6)
     assert m["n_lost"] == 1 and m["lost_rate"] == pytest.approx(1 / 6)
     assert m["lost_by_reason"] == {"no consensus": 1}
+    assert m["lost_by_gate"] == {"no consensus": {"right": 0, "near": 0, "wrong": 0, "no pose": 1}}
     assert m["median_translation_m"] == pytest.approx(0.03)
     assert m["mean_translation_m"] == pytest.approx(0.452)
     assert m["retrieval_recall"] == pytest.approx(4 / 6) and m["cpu_s_per_frame"] == pytest.approx(0.5)
@@ -172,6 +173,29 @@ def test_report_counts_lost_frames_as_failures_and_names_gross_ones(build: Path,
     assert "| 1 | localized (gross) |" in rows and "| 2 | lost | no consensus | - | - |" in rows
     assert "- `lost: ambiguous`:" in md and "- `gross`:" in md
     assert (tmp_path / "mixed" / "worst.png").is_file()
+
+
+def test_lost_frames_are_split_by_gate_and_by_their_rejected_pose(build: Path, tmp_path: Path) -> None:
+    nan = float("nan")
+    reasons = ["unverified", "unverified", "ambiguous", "unverified", "no consensus"]
+    records = [_frame(0, 0.01, 0.5)] + [_frame(i, nan, nan, reason) for i, reason in enumerate(reasons, 1)]
+    # The rejected poses: right (2 cm), near (0.3 m), wrong (4 m), wrong (15 deg); frame 5 has none.
+    rejected = [(0.02, 0.5, "unverified: plane"), (0.3, 1.0, "unverified: plane"), (4.0, 0.5, "ambiguous"),
+                (0.1, 15.0, "unverified: mount")]  # fmt: skip
+    for r, (t, deg, gate) in zip(records[1:5], rejected, strict=True):
+        r.candidate_translation_m, r.candidate_rotation_deg, r.gate = t, deg, gate
+    records[5].gate = "no consensus"
+    r, md = _report_of(records, build, tmp_path / "gates")
+    assert r["lost_by_gate"] == {
+        "ambiguous": {"right": 0, "near": 0, "wrong": 1, "no pose": 0},
+        "no consensus": {"right": 0, "near": 0, "wrong": 0, "no pose": 1},
+        "unverified: mount": {"right": 0, "near": 0, "wrong": 1, "no pose": 0},
+        "unverified: plane": {"right": 1, "near": 1, "wrong": 0, "no pose": 0},
+    }
+    assert r["lost_by_reason"] == {"ambiguous": 1, "no consensus": 1, "unverified": 3}
+    lost_section = md.split("## Lost queries by reason")[1].split("##")[0]
+    assert "| unverified: plane | 2 | 1 | 1 | 0 | 0 |" in lost_section
+    assert "- `lost: unverified: plane`:" in md
 
 
 def test_report_of_a_run_that_never_localized(build: Path, tmp_path: Path) -> None:

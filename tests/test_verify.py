@@ -119,7 +119,9 @@ def test_identical_rooms_are_ambiguous_never_the_wrong_room() -> None:
     config = VerifyConfig()
     for pose, rival in ((T_a, T_b), (T_b, T_a)):
         verdict = verify_pose(pose, T_wi, out, CAMERA, config, rivals=[rival])
-        assert not verdict.ok and verdict.reason == "ambiguous", verdict.detail
+        assert not verdict.ok and verdict.reason == "ambiguous" and verdict.check == "ambiguity", (
+            verdict.detail
+        )
         # Each room's references support its pose in full: the rival is as strong as the pose.
         assert verdict.rival_strength >= 0.5 * verdict.strength > 3 * config.min_support_matches
     # Only room A's references: the right room is confirmed by all three, with high confidence.
@@ -133,6 +135,7 @@ def test_pose_from_another_rooms_references_is_rejected() -> None:
     T_a, T_b, T_wi, out = _aliased_frame("A")
     wrong = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig())
     assert not wrong.ok and wrong.reason == "unverified" and wrong.strength == 0 and wrong.confidence == 0
+    assert wrong.check == "support"
     # A pose 0.5 m off in the right room explains (almost) nothing either.
     off = T_a.copy()
     off[:3, 3] += [0.5, -0.3, 0.0]
@@ -144,7 +147,9 @@ def test_wrong_camera_height_or_tilt_is_rejected() -> None:
     config = VerifyConfig(pose_height_tolerance=0.3)
     assert verify_pose(T_a, T_wi, out, CAMERA, config, camera_z=1.1).ok  # 0.1 m high: within 0.3 m
     low = verify_pose(T_a, T_wi, out, CAMERA, config, camera_z=2.1)
-    assert low.reason == "unverified" and low.detail == "camera height off by -0.90 m"
+    assert (
+        low.reason == "unverified" and low.detail == "camera height off by -0.90 m" and low.check == "mount"
+    )
     rolled = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(20.0), roll=np.deg2rad(12.0))
     assert "rolled" in verify_pose(rolled, T_wi, out, CAMERA, config).detail
     level = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(-20.0))  # looking up
@@ -198,6 +203,7 @@ def test_off_plane_support_rejects_a_place_that_only_repeats_a_walls_texture() -
     assert all(len(m) <= 0.05 * n for m, n in zip(flat.matches, out_b.n_matches, strict=True))
     wrong = verify_pose(T_b, T_wi_b, out_b, CAMERA, plane)
     assert not wrong.ok and wrong.reason == "unverified" and "dominant planes" in wrong.detail
+    assert wrong.check == "plane"
     # Room A's references see two walls and the floor: matches stay off the dominant plane.
     kept = np.array([len(m) for m in off_plane_matches(out_a, 2.0).matches])
     assert ((kept >= 0.2 * out_a.n_matches) & (kept <= 0.8 * out_a.n_matches)).all()
@@ -270,6 +276,7 @@ def test_a_pose_the_most_confident_pairs_do_not_explain_is_rejected() -> None:
     # Room B's weak pairs alone confirm its pose, but the confident pairs see another place.
     wrong = verify_pose(T_b, T_wi, out, CAMERA, config)
     assert not wrong.ok and wrong.reason == "unverified" and "18% of the pairs' confidence" in wrong.detail
+    assert wrong.check == "share" and verify_pose(T_a, T_wi, out, CAMERA, config).check == ""
     assert verify_pose(T_b, T_wi, out, CAMERA, replace(config, min_explained_confidence=None)).ok
     # A pair counts by the share of its own geometry's matches the pose explains: a pose 10 deg
     # of yaw off keeps few of room A's matches.

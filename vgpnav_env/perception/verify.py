@@ -338,6 +338,17 @@ def explained_confidence(
     return float((c[pairs] * share).sum() / c[pairs].sum())
 
 
+#: The checks of :func:`verify_pose`, in the order they run: name -> what rejects a pose
+#: (:attr:`Verdict.check`; "ambiguity" gives the lost reason "ambiguous", the others "unverified").
+VERIFY_CHECKS: dict[str, str] = {
+    "mount": "the camera's roll, pitch or height is not the robot mount's",
+    "support": "too few references explain the pose's matches (epipolar support)",
+    "plane": "the pose explains matches only on the pairs' dominant planes",
+    "ambiguity": "a distinct rival pose has comparable support",
+    "share": "the pose explains too small a share of the pairs' confidence",
+}
+
+
 @dataclass(frozen=True)
 class Verdict:
     """Whether the images confirm a pose (:func:`verify_pose`).
@@ -350,7 +361,8 @@ class Verdict:
     not explain, or in small part (over its ``ambiguity_references`` strongest; 0 without one)
     and ``rival`` its pose. ``score`` in [0, 1):
     ``strength / (strength + rival_strength + confidence_matches)`` -- more independent support,
-    higher; a rival, lower; ``confidence``: the score of an accepted pose, else 0.
+    higher; a rival, lower; ``confidence``: the score of an accepted pose, else 0. ``check``: the
+    :data:`VERIFY_CHECKS` name of the check that rejected the pose ("" when ok).
     """
 
     ok: bool
@@ -361,6 +373,7 @@ class Verdict:
     strength: int
     rival_strength: int = 0
     rival: NDArray[np.float64] | None = None
+    check: str = ""
 
     @property
     def n_supporting(self) -> int:
@@ -439,29 +452,28 @@ def verify_pose(
     score = strength / (strength + rival_strength + config.confidence_matches)
     n = int(explained.sum())
 
-    def verdict(reason: str, detail: str) -> Verdict:
-        return Verdict(not reason, reason, detail, score, support, strength, rival_strength, rival)
+    def verdict(check: str, detail: str) -> Verdict:
+        reason = "ambiguous" if check == "ambiguity" else "unverified" if check else ""
+        return Verdict(not reason, reason, detail, score, support, strength, rival_strength, rival, check)
 
     mount = _implausible(T_wq, camera_z, config)
     if mount:
-        return verdict("unverified", mount)
+        return verdict("mount", mount)
     if not _enough_references(support[explained], config):
-        return verdict("unverified", f"{n} reference(s) support the pose (support {raw.tolist()})")
+        return verdict("support", f"{n} reference(s) support the pose (support {raw.tolist()})")
     structure = off_plane(T_wq, explained)
     if structure < config.min_off_plane_matches:
-        return verdict(
-            "unverified", f"support only on the pairs' dominant planes ({structure} matches off them)"
-        )
+        return verdict("plane", f"support only on the pairs' dominant planes ({structure} matches off them)")
     if rival_strength >= config.ambiguity_ratio * _strongest(support, config.ambiguity_references):
         return verdict(
-            "ambiguous",
+            "ambiguity",
             f"a pose {np.linalg.norm(rival[:3, 3] - T_wq[:3, 3]):.1f} m away has support {rival_strength} "
             f"against {strength}",
         )
     if config.min_explained_confidence is not None:
         share = explained_confidence(T_wq, T_wi, out, camera, config, raw, own)
         if share < config.min_explained_confidence:
-            return verdict("unverified", f"the pose explains {share:.0%} of the pairs' confidence")
+            return verdict("share", f"the pose explains {share:.0%} of the pairs' confidence")
     return verdict("", f"{n} references, support {strength}, rival {rival_strength}")
 
 
