@@ -171,10 +171,11 @@ def lost_table(metrics: dict[str, Any]) -> str:
     if not lost:
         return "No query was lost."
     rows = [(gate, sum(n.values()), *(n[c] for c in CANDIDATE_CLASSES)) for gate, n in lost.items()]
-    header = ["reason", "count", *(f"{c} ({meaning})" for c, meaning in CANDIDATE_CLASSES.items())]
+    classes = "; ".join(f"{c}: {meaning}" for c, meaning in CANDIDATE_CLASSES.items())
     return (
         "## Lost queries by reason\n\nThe gate that rejected each lost query and how far its rejected "
-        "pose was from the true one.\n\n" + markdown_table(header, rows)
+        f"pose was from the true one ({classes}).\n\n"
+        + markdown_table(["reason", "count", *CANDIDATE_CLASSES], rows)
     )
 
 
