@@ -200,7 +200,8 @@ def test_classical_backbone_localizes(database: Database, query, rerank: int, n_
 
 def test_tracking_chooses_references_around_the_predicted_pose(database: Database, query) -> None:
     """``predicted`` (temporal mode): references among the database cameras within 2 m / 45 deg
-    of the predicted camera; a prediction with no camera near falls back to global retrieval.
+    of the predicted camera; a prediction with no camera near is lost (one attempt per frame: the
+    caller relocalizes on the next frame), without it the same frame relocalizes globally.
     Deferred fusion (``fuse=False`` then :meth:`Perceiver.fuse`) maps what fusing at once maps."""
     run, depth = query
     config = PerceptionConfig(camera_height=QUERY_HEIGHT)
@@ -226,6 +227,9 @@ def test_tracking_chooses_references_around_the_predicted_pose(database: Databas
     far = run.poses[0].copy()
     far[:3, 3] += (50.0, 50.0, 0.0)
     result = tracker.perceive(run.images[0], priv[0], predicted=far)
+    assert result.reason == "too few matches" and result.source == "tracking"
+    assert result.detail == "no database camera near the predicted pose"
+    result = tracker.perceive(run.images[0], priv[0])
     assert result.localized and result.source == "global"
 
 

@@ -342,16 +342,13 @@ class Perceiver:
 
         With a ``gate``, a pose outside it is lost ("inconsistent motion"), nothing is fused.
         ``predicted`` (tracking): a predicted camera pose ``T_wc`` (4x4); the references are chosen
-        among the database cameras near it (:func:`tracked_references`), and when that frame is
-        lost (or no camera is near) global retrieval tries again. ``fuse=False``: the caller fuses
-        the frame later if it trusts it (:meth:`fuse`).
+        among the database cameras near it (:func:`tracked_references`; none near: lost), else by
+        global retrieval. One attempt per frame: after a lost tracked frame the caller relocalizes
+        on the next (:meth:`~vgpnav_env.perception.state.EKFState.tracking_pose`).
+        ``fuse=False``: the caller fuses the frame later if it trusts it (:meth:`fuse`).
         """
         clock = _Clock()
-        result, points_w = None, None
-        if predicted is not None:
-            result, points_w = self._attempt(rgb, privileged, gate, clock, predicted)
-        if result is None or not result.localized:
-            result, points_w = self._attempt(rgb, privileged, gate, clock, None)
+        result, points_w = self._attempt(rgb, privileged, gate, clock, predicted)
         if result.localized and fuse:
             with clock.stage("occupancy"):
                 result = replace(result, classes=self._fuse(result, points_w))

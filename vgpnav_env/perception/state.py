@@ -293,7 +293,10 @@ class EKFConfig:
     Tracking (references around the
     prediction) while the position standard deviation (largest axis) is at most
     ``track_max_sigma`` and the yaw's at most ``track_max_sigma_deg``; beyond, global retrieval
-    relocalizes.
+    relocalizes. A tracked frame that perceived no pose hands the next frame to global retrieval
+    (then tracking again, alternating while lost): each frame runs one localization attempt, never
+    a tracking attempt and a global one (on home's 184 query frames the failed tracking attempts
+    and their same-frame global retries made temporal mode cost more CPU per frame than paper mode).
     """
 
     forward_sigma: float = 0.03
@@ -389,6 +392,7 @@ class EKFState:
         self._candidate_count = 0
         self._support = 0  # the fixes that set the estimate and those accepted since (capped)
         self._pool: list[_Candidate] = []  # the fixes before the first estimate (the latest)
+        self._track = False  # whether this frame tracks (decided by the motion update)
 
     @property
     def estimate(self) -> NDArray[np.float64]:
@@ -424,6 +428,7 @@ class EKFState:
         self._candidate, self._candidate_count = None, 0
         self._support = 0
         self._pool = []
+        self._track = False
 
     def _motion(self, action: int | NDArray | None, blocked: bool, stalled: bool):
         """The commanded ``action`` as a motion (forward m, left m, yaw rad) in the robot frame with
@@ -462,8 +467,16 @@ class EKFState:
                 self._candidate_P = self._candidate_P + Q
             for c in self._pool:
                 c.P = c.P + Q
+            self._decide_tracking()
             return
         self.predict_odometry(*motion)
+
+    def _decide_tracking(self) -> None:
+        """After a motion update: whether the new frame tracks -- the estimate is certain enough,
+        and the previous frame was not a tracking attempt that perceived no pose (see
+        :class:`EKFConfig`)."""
+        failed = self._track and self._fix == "none"
+        self._track = self._have_fix and not _too_uncertain(self._P, self.config) and not failed
 
     def odometry_covariance(self, motion: ArrayLike) -> NDArray[np.float64]:
         """The 3x3 covariance of measured odometry ``motion`` (forward m, left m, yaw rad): that of
@@ -489,6 +502,7 @@ class EKFState:
         for c in self._pool:
             c.pose, c.P = self._odometry(c.pose, c.P, d, Q)
             c.moved, c.turned = c.moved + float(np.hypot(d[0], d[1])), c.turned + float(d[2])
+        self._decide_tracking()
 
     def _odometry(self, x: NDArray[np.float64], P: NDArray[np.float64], d: NDArray[np.float64], Q_d):
         c, s = np.cos(x[2]), np.sin(x[2])
@@ -502,9 +516,7 @@ class EKFState:
         return None
 
     def tracking_pose(self) -> NDArray[np.float64] | None:
-        if not self._have_fix or _too_uncertain(self._P, self.config):
-            return None
-        return self.estimate
+        return self.estimate if self._track else None
 
     def mahalanobis2(self, measured: ArrayLike) -> float:
         """Squared Mahalanobis distance of a perceived pose from the estimate (inf before a fix)."""
