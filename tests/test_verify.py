@@ -380,3 +380,19 @@ def _last(out: BackboneOutput, k: int) -> BackboneOutput:
         out, T_qi=out.T_qi[-k:], confidence=out.confidence[-k:], n_matches=out.n_matches[-k:],
         scale_valid=out.scale_valid[-k:], matches=out.matches[-k:],
     )  # fmt: skip
+
+
+def test_a_rival_does_not_change_the_share_the_pose_explains() -> None:
+    # A pose 2 deg of yaw off explains part of each pair's matches: 32 % of the pairs' confidence,
+    # under 45 %. A distinct rival the images do not support leaves that share as it is (600436f
+    # passed the rival's reference mask as the pairs' own support, and the share became 100 %).
+    T_a, _, T_wi, out = _aliased_frame("A")
+    out = replace(out, T_qi=invert_pose(T_a) @ T_wi)
+    config = VerifyConfig()
+    own = pair_support(T_wi, out, CAMERA, config)
+    turned = camera_pose(T_a[:3, 3], np.deg2rad(47.0), np.deg2rad(20.0))
+    far = camera_pose([5.0, 5.0, 1.2], 0.0, np.deg2rad(20.0))
+    alone = verify_pose(turned, T_wi, out, CAMERA, config, own=own)
+    with_rival = verify_pose(turned, T_wi, out, CAMERA, config, rivals=[far], own=own)
+    assert alone.check == with_rival.check == "share", with_rival.detail
+    assert with_rival.detail == alone.detail == "the pose explains 32% of the pairs' confidence"

@@ -441,12 +441,12 @@ def verify_pose(
             continue
         theirs = reference_support(T, T_wi, out, camera, config)
         claimed = ~explained if claim is None else ~explained | (raw < claim * theirs)
-        own = claimed & (theirs >= config.min_support_matches)
-        if not _enough_references(theirs[own], config):
+        theirs_alone = claimed & (theirs >= config.min_support_matches)
+        if not _enough_references(theirs[theirs_alone], config):
             continue  # one weak pair alone is no place (a plane's matches fit several poses)
-        if off_plane(T, own) < config.min_off_plane_matches:
+        if off_plane(T, theirs_alone) < config.min_off_plane_matches:
             continue  # a wall's texture alone is no place either
-        value = _strongest(theirs[own], config.ambiguity_references)
+        value = _strongest(theirs[theirs_alone], config.ambiguity_references)
         if value > rival_strength:
             rival_strength, rival = value, T
     score = strength / (strength + rival_strength + config.confidence_matches)
