@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -47,6 +48,14 @@ class Action(IntEnum):
     FORWARD = 1
     TURN_LEFT = 2
     TURN_RIGHT = 3
+
+
+def felt_contact(env: Any, action: Any) -> bool:
+    """Whether ``action`` was a discrete forward step that the bump sensor of ``env`` (a point-goal
+    env or a wrapper of one: ``env.unwrapped.bumped``) found blocked: something the robot touched
+    lies ahead."""
+    base = env.unwrapped
+    return base.action_mode == "discrete" and base.bumped and int(action) == Action.FORWARD
 
 
 def camera_T_wc(

@@ -26,10 +26,11 @@ The observation:
   metres, row 0 ahead, columns to the right; 255 occupied, 128 free, 0 unknown), channels first.
   A discrete forward step the bump sensor reports blocked marks what it felt, a band across the
   heading just beyond the robot's radius from the estimated pose, occupied in the fused map
-  (:meth:`~vgpnav_env.perception.occupancy.LogOddsMap.mark_contact`; :func:`felt_contact`): the
-  reconstruction misses low, plain or close furniture, and without the mark a policy pushing into
-  such an obstacle saw the same free crop at every step (home seed 3, classical pixels, lost
-  against a table: ``ppo_200000_steps`` pushed forward on 460 of 500 steps).
+  (:meth:`~vgpnav_env.perception.occupancy.LogOddsMap.mark_contact`;
+  :func:`~vgpnav_env.robot.felt_contact`): the reconstruction misses low, plain or close
+  furniture, and without the mark a policy pushing into such an obstacle saw the same free crop at
+  every step (home seed 3, classical pixels, lost against a table: ``ppo_200000_steps`` pushed
+  forward on 460 of 500 steps).
 - ``localized``: 1 if this frame's perceived pose was taken in by the pose state, 0 if the pose was
   carried forward (lost, or a perceived pose the EKF rejected).
 
@@ -89,7 +90,7 @@ from vgpnav_env.perception.state import (
     OdometryState,
     PoseState,
 )
-from vgpnav_env.robot import FOVY_DEG, Action, base_pose
+from vgpnav_env.robot import FOVY_DEG, base_pose, felt_contact
 
 logger = logging.getLogger(__name__)
 
@@ -133,13 +134,6 @@ def navigation_space(base: gym.Env, map_size: int) -> spaces.Dict:
             "localized": spaces.Discrete(2),
         }
     )
-
-
-def felt_contact(env: gym.Env, action: Any) -> bool:
-    """Whether ``action`` was a discrete forward step that the bump sensor of ``env`` (the point-goal
-    env, ``env.unwrapped.bumped``) found blocked: something the robot touched lies ahead."""
-    base = env.unwrapped
-    return base.action_mode == "discrete" and base.bumped and int(action) == Action.FORWARD
 
 
 def navigation_observation(

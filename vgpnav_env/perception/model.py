@@ -63,7 +63,7 @@ from vgpnav_env.grid import GridSpec
 from vgpnav_env.measures import EstimateState, Measurements
 from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
 from vgpnav_env.perception.state import EKFConfig
-from vgpnav_env.robot import Action
+from vgpnav_env.robot import Action, felt_contact
 
 #: Errors above (metres, degrees) are gross (as the localization reports count them).
 GROSS_ERROR = (0.5, 10.0)
@@ -485,8 +485,6 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.estimate = self.estimate + np.array([c * dx - s * dy, s * dx + c * dy, turn])
         self.estimate[2] = wrap_angle(self.estimate[2])
         self._true = true
-        from vgpnav_env.wrappers import felt_contact
-
         if self.has_estimate and felt_contact(self.env, action):
             self.fused_map.mark_contact(
                 self.estimate, self.env.unwrapped.robot_radius, depth=self.map_resolution
