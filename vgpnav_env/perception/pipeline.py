@@ -70,6 +70,7 @@ from vgpnav_env.perception.verify import (
     VerifyConfig,
     check_height,
     check_scale,
+    implausible_mount,
     pair_support,
     pooled_pairs,
     reference_support,
@@ -309,8 +310,8 @@ class Perceiver:
         localizes (verified), the anchor is dropped: poses the images do not confirm set no floor
         (a wall's plane gave home seed 3 a pose 1 m off and the floor 0.52 m too high, and every
         right pose after it failed the camera-height check); the first verified :meth:`perceive`
-        sets it. Frames whose camera the map's floor puts at the wrong height anchor nothing
-        (:meth:`_on_map_floor`).
+        sets it. Frames that fail the mount check against the map's floor anchor nothing
+        (:meth:`_map_camera_z`).
         """
         if isinstance(images, np.ndarray) and images.ndim == 3:
             images = [images]
@@ -320,7 +321,7 @@ class Perceiver:
         observations = []
         for rgb, p in zip(images, priv, strict=True):
             loc = self._localize(rgb, p, _Clock())
-            if loc.ok and self._on_map_floor(loc.motion.T_wq[2, 3]):
+            if loc.ok and not implausible_mount(loc.motion.T_wq, self._map_camera_z(), self.config.verify):
                 observations.append((loc.motion.T_wq, None))
         if observations:
             self.anchor.initialize(observations, self.config.camera_height)
@@ -443,23 +444,19 @@ class Perceiver:
         support = reference_support(pose.T_wc, T_wi, out, self.camera, v)
         support = rival_pairs(support, T_wi, out, self.camera, v, own)
         rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
-        floor = pose.z_ground  # nan before the ground is anchored
-        if pose.anchor is not None and np.isfinite(self.database.z_ground):
-            floor = self.database.z_ground  # the pose would anchor the ground: the map's floor checks it
-        camera_z = floor + cfg.camera_height
+        camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
+        if pose.anchor is not None and np.isfinite(self._map_camera_z()):
+            camera_z = self._map_camera_z()  # the pose would anchor the ground: the map's floor checks it
         return verify_pose(pose.T_wc, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
 
-    def _on_map_floor(self, camera_z: float) -> bool:
-        """Whether a camera at world height ``camera_z`` (metres) stands at the calibrated height
-        above the floor the database's reconstruction found (:attr:`Database.z_ground`), within
-        ``verify.pose_height_tolerance`` (True when either is unknown). A pose that anchors the
-        ground must: hospital:1 seed 2's first verified pose, a single pair's 1.25 m off, set the
-        floor 0.50 m too high, and every right pose after it failed the camera-height check (its
-        episode 99.6 % lost, started 0.58 m off by two wrong fixes at that height)."""
-        tol, floor = self.config.verify.pose_height_tolerance, self.database.z_ground
-        if tol is None or not np.isfinite(floor):
-            return True
-        return abs(camera_z - floor - self.config.camera_height) <= tol
+    def _map_camera_z(self) -> float:
+        """World height (metres) of a camera at the calibrated height above the floor the
+        database's reconstruction found (:attr:`Database.z_ground`; nan when unknown). A pose that
+        anchors the ground must stand there (:func:`implausible_mount`): hospital:1 seed 2's first
+        verified pose, a single pair's 1.25 m off, set the floor 0.50 m too high, and every right
+        pose after it failed the camera-height check (its episode 99.6 % lost, started 0.58 m off
+        by two wrong fixes at that height)."""
+        return float(self.database.z_ground) + self.config.camera_height
 
     def _localize(
         self,

@@ -432,7 +432,7 @@ def verify_pose(
     rival_strength, rival = 0, None
     claim = config.rival_claim_ratio
     for T in rivals:
-        if _implausible(T, camera_z, config):
+        if implausible_mount(T, camera_z, config):
             continue
         distinct = np.linalg.norm(T[:3, 3] - T_wq[:3, 3]) > config.rival_distance or rotation_angle(
             T[:3, :3], T_wq[:3, :3]
@@ -456,7 +456,7 @@ def verify_pose(
         reason = "ambiguous" if check == "ambiguity" else "unverified" if check else ""
         return Verdict(not reason, reason, detail, score, support, strength, rival_strength, rival, check)
 
-    mount = _implausible(T_wq, camera_z, config)
+    mount = implausible_mount(T_wq, camera_z, config)
     if mount:
         return verdict("mount", mount)
     if not _enough_references(support[explained], config):
@@ -492,10 +492,10 @@ def _enough_references(support: NDArray[np.int64], config: VerifyConfig) -> bool
     )
 
 
-def _implausible(T_wc: NDArray[np.float64], camera_z: float, config: VerifyConfig) -> str:
-    """Why a ground robot's camera cannot have the pose ``T_wc`` ("" when it can): roll, pitch or
-    height (world z against ``camera_z``, unchecked when nan) outside the :class:`VerifyConfig`
-    limits."""
+def implausible_mount(T_wc: NDArray[np.float64], camera_z: float, config: VerifyConfig) -> str:
+    """Why a ground robot's camera cannot have the pose ``T_wc`` (OpenCV camera to W) ("" when it
+    can): roll, pitch or height (world z against ``camera_z`` metres, unchecked when nan) outside
+    the :class:`VerifyConfig` limits (the "mount" check of :func:`verify_pose`)."""
     roll = float(np.degrees(np.arcsin(np.clip(T_wc[2, 0], -1.0, 1.0))))
     if config.max_roll_deg is not None and abs(roll) > config.max_roll_deg:
         return f"camera rolled {roll:+.1f} deg"
