@@ -130,8 +130,10 @@ def episode_figure(env: gym.Env, record: EpisodeRecord) -> Figure:
     title += f"; lost {lost:.0%} of frames, mean pose error " + (
         "none" if error is None else f"{error:.2f} m"
     )
-    fig = Figure(figsize=(13, 8.5))
-    grid = fig.add_gridspec(2, 2, height_ratios=(2.2, 1))
+    (x0, y0), (x1, y1) = env.unwrapped.ground_truth.spec.bounds
+    maps_height = 5.0 * (y1 - y0) / (x1 - x0) + 0.8  # two maps side by side on a 13-inch-wide page
+    fig = Figure(figsize=(13, maps_height + 3.0))
+    grid = fig.add_gridspec(2, 2, height_ratios=(maps_height, 2.6))
     _ground_truth_panel(fig.add_subplot(grid[0, 0]), env, record)
     _fused_map_panel(fig.add_subplot(grid[0, 1]), env, record)
     _error_panel(fig.add_subplot(grid[1, :]), record, success_distance)
