@@ -134,23 +134,28 @@ def make_vec(config: dict[str, Any], n_envs: int, seed: int, end_penalty: bool =
 
 class SB3Policy:
     """A saved stable-baselines3 policy: the most likely action, or with ``sample`` one drawn from
-    its action distribution (discrete actions; a generator seeded by :meth:`reset`'s episode seed).
+    its action distribution (discrete actions; a generator seeded by :meth:`reset`'s episode seed);
+    with ``escape_loops`` the most likely action except at a step where a
+    :class:`~vgpnav_env.agents.proprioception.LoopDetector` finds it in a loop, where it is drawn.
     A policy trained with ``guidance`` computes its path channel itself from ``env`` (the
     perception-wrapped env it acts in: its ``fused_map``, as the A* agent reads it), one trained
     with ``proprioception`` its previous action and the env's bump sensor."""
 
-    def __init__(self, path: str | Path, env: gym.Env | None = None, sample: bool = False) -> None:
+    def __init__(
+        self, path: str | Path, env: gym.Env | None = None, sample: bool = False, escape_loops: bool = False
+    ) -> None:
         from stable_baselines3 import PPO
 
         from vgpnav_env.agents.guidance import path_channel_for
         from vgpnav_env.agents.ppo_policy import single_thread
-        from vgpnav_env.agents.proprioception import Proprioceptor
+        from vgpnav_env.agents.proprioception import LoopDetector, Proprioceptor
 
         single_thread()
         self.model = PPO.load(str(path), device="cpu")
-        if sample and not isinstance(self.model.action_space, gym.spaces.Discrete):
+        if (sample or escape_loops) and not isinstance(self.model.action_space, gym.spaces.Discrete):
             raise ValueError(f"sampled actions need a discrete action space, got {self.model.action_space}")
         self.env, self.sample = env, bool(sample)
+        self.loops = LoopDetector() if escape_loops else None
         self.rng = np.random.default_rng()
         self.channel = self.sense = None
         config = load_config(path)["env"]
@@ -167,6 +172,8 @@ class SB3Policy:
             self.channel.reset()
         if self.sense is not None:
             self.sense.reset()
+        if self.loops is not None:
+            self.loops.reset()
         if seed is not None:
             self.rng = np.random.default_rng(seed)
 
@@ -187,7 +194,10 @@ class SB3Policy:
             obs = {**obs, **self.channel(obs, self.env.get_wrapper_attr("fused_map"))}
         if isinstance(obs, dict) and hasattr(space, "spaces"):
             obs = {key: obs[key] for key in space.spaces}  # e.g. another scene's pose bounds
-        if self.sample:
+        looping = False
+        if self.loops is not None:
+            looping = self.loops.visit(obs, self.env is not None and self.env.unwrapped.bumped)
+        if self.sample or looping:
             probs = self.probabilities(obs)
             action: Any = int(self.rng.choice(len(probs), p=probs / probs.sum()))
         else:
@@ -195,6 +205,8 @@ class SB3Policy:
             action = int(action) if np.ndim(action) == 0 else action
         if self.sense is not None:
             self.sense.record(action)
+        if self.loops is not None:
+            self.loops.record(action)
         return action
 
 

@@ -11,20 +11,28 @@ the map do not change) and repeats the blocked action until the episode times ou
   (:attr:`~vgpnav_env.envs.pointgoal.PointGoalEnv.bumped`), not the true pose.
 
 :class:`Proprioceptor` computes them for a policy acting in an env without the wrapper
-(``SB3Policy``), as the wrapper does during training.
+(``SB3Policy``), as the wrapper does during training. :class:`LoopDetector` tells a deterministic
+policy that it is in a loop it cannot leave (its input and its own motion repeat).
 """
 
 from __future__ import annotations
 
+import hashlib
+from collections import deque
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 from gymnasium import spaces
 
-from vgpnav_env.robot import Action
+from vgpnav_env.robot import Action, predict_pose
 
 #: Observation keys added by :class:`Proprioception`.
 LAST_ACTION_KEY, BUMPED_KEY = "last_action", "bumped"
+
+#: Steps :class:`LoopDetector` looks back (a full turn in place takes 24); the ``escape-loops``
+#: actions of ``vgpnav eval navigation`` name it.
+LOOP_WINDOW = 32
 
 
 def proprioception_spaces() -> dict[str, spaces.Discrete]:
@@ -69,3 +77,42 @@ class Proprioception(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.sense.record(action)
         return {**obs, **self.sense()}, reward, terminated, truncated, info
+
+
+class LoopDetector:
+    """Whether a deterministic policy is in a loop it cannot leave: its input (every key, exactly)
+    and its dead-reckoned pose both repeat one of the last ``window`` steps'.
+
+    The dead-reckoned pose integrates the nominal motion of its own actions
+    (:func:`~vgpnav_env.robot.predict_pose`, a blocked step counted as no motion) from the episode's
+    start: what the robot knows of its motion, nothing privileged. Where both repeat, the robot
+    stands where it stood and sees what it saw, so the most likely action is the one it took then
+    (measured on pixels, home seed 3: lost with a dead-reckoned estimate, ``ppo_200000_steps``
+    alternated left and right turns for 400 steps; before a first fix, the same input at every
+    step). Call :meth:`reset` at an episode's start, :meth:`visit` with the policy's input before
+    it acts and :meth:`record` with the action taken.
+    """
+
+    def __init__(self, window: int = LOOP_WINDOW) -> None:
+        self.seen: deque[tuple[bytes, tuple[float, ...]]] = deque(maxlen=int(window))
+        self.reset()
+
+    def reset(self) -> None:
+        self.seen.clear()
+        self.pose = np.zeros(3)
+        self.action: int | None = None
+
+    def record(self, action: Any) -> None:
+        self.action = int(action)
+
+    def visit(self, obs: dict[str, Any], blocked: bool) -> bool:
+        """Add this step (``blocked``: the previous step's motion was) and return whether it
+        repeats one of the window's."""
+        if self.action is not None and not blocked:
+            self.pose = predict_pose(self.pose, self.action)
+        data = b"".join(np.ascontiguousarray(obs[k]).tobytes() for k in sorted(obs))
+        digest = hashlib.blake2b(data).digest()
+        key = (digest, tuple(np.round(self.pose, 6).tolist()))
+        repeated = key in self.seen
+        self.seen.append(key)
+        return repeated

@@ -33,6 +33,7 @@ import numpy as np
 from vgpnav_env.agents import AGENTS, agent_choices, parse_agent, ppo
 from vgpnav_env.agents.astar import AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
+from vgpnav_env.agents.proprioception import LOOP_WINDOW
 from vgpnav_env.arguments import positive_int_arg, seed_arg, size_arg
 from vgpnav_env.eval.perception_runs import (
     add_backbone_arguments,
@@ -220,6 +221,8 @@ PERCEPTION_KINDS = {
 ACTION_KINDS = {
     "deterministic": "the most likely action (default)",
     "sampled": "drawn from the distribution, seeded per episode",
+    "escape-loops": "the most likely action, but drawn (seeded per episode) at a step whose input and "
+    f"dead-reckoned pose repeat one of the last {LOOP_WINDOW} steps' exactly (a deterministic policy's loop)",
 }
 
 
@@ -261,7 +264,9 @@ def make_policy(plan: AgentPlan, env: gym.Env) -> Policy:
         return OracleAgent(env)
     if plan.name == "astar":
         return PerceptionAStar(env)
-    return ppo.SB3Policy(plan.model, env, sample=plan.actions == "sampled")
+    return ppo.SB3Policy(
+        plan.model, env, sample=plan.actions == "sampled", escape_loops=plan.actions == "escape-loops"
+    )
 
 
 def make_env(plan: AgentPlan, env_kwargs: dict[str, Any], wrapper_kwargs: dict[str, Any]) -> gym.Env:

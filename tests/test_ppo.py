@@ -244,3 +244,30 @@ def test_init_fine_tunes_a_trained_policy_on_randomised_model_episodes(tmp_path)
     assert a.learning_rate == RECIPE_PPO_KWARGS["learning_rate"] and a.target_kl is None
     with pytest.raises(ValueError, match="randomize applies to the model perception"):
         train_ppo("home", 64, tmp_path / "c", perception="simulated", randomize=True)
+
+
+@pytest.mark.slow
+def test_escape_loops_takes_the_most_likely_action_until_a_step_repeats(trained):
+    """``escape_loops``: a policy pinned in place (every step blocked) that sees the same input
+    takes the most likely action at the episode's first step and draws every later one from its
+    distribution (frequencies within 0.1 over 400 draws), the same draws after the same seed."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from vgpnav_env.agents.ppo import SB3Policy
+    from vgpnav_env.make import make_env
+
+    _, path = trained
+    env = make_env(load_config(path)["env"])
+    obs, _ = env.reset(seed=0)
+    pinned = SimpleNamespace(unwrapped=SimpleNamespace(bumped=True))
+    policy = SB3Policy(path, env=pinned, escape_loops=True)
+    probs = policy.probabilities(obs)
+    policy.reset(seed=3)
+    actions = [policy.act(obs) for _ in range(401)]
+    assert actions[0] == int(np.argmax(probs))
+    assert np.abs(np.bincount(actions[1:], minlength=4) / 400 - probs).max() < 0.1
+    policy.reset(seed=3)
+    assert [policy.act(obs) for _ in range(401)] == actions
+    env.close()

@@ -59,3 +59,35 @@ def test_resume_keeps_progress_rows_and_the_curriculum_stage(tmp_path):
     (tb / "progress.csv").write_text("time/total_timesteps,rollout/spl\n1536,0.5\n")
     assert [r["time/total_timesteps"] for r in progress_rows(tmp_path)] == ["512", "1024", "1536"]
     assert curriculum_stage(tmp_path) == 3.0
+
+
+def test_loop_detector_finds_repeated_input_at_a_repeated_dead_reckoned_pose():
+    """A repeat needs the same input and the same dead-reckoned pose within the window: a left and
+    a right turn come back (a loop), a full turn in place only after 24 steps, a blocked forward
+    step stays (pushing into a wall), an unblocked one moves on, another input is no repeat."""
+    import numpy as np
+
+    from vgpnav_env.agents.proprioception import LoopDetector
+    from vgpnav_env.robot import Action
+
+    a, b = {"map": np.zeros((1, 4, 4), np.uint8), "goal_rel": np.array([1.0, 0.5])}, {"last_action": 2}
+
+    def walk(detector, actions, blocked=False, obs=a):
+        found = []
+        for action in actions:
+            found.append(detector.visit(obs, blocked))
+            detector.record(action)
+        return found
+
+    loops = LoopDetector()
+    assert walk(loops, [Action.TURN_LEFT, Action.TURN_RIGHT, Action.TURN_LEFT]) == [False, False, True]
+    loops.reset()
+    assert walk(loops, [Action.TURN_RIGHT] * 26) == [False] * 24 + [True, True]
+    loops.reset()
+    assert walk(loops, [Action.FORWARD] * 3, blocked=True) == [False, True, True]
+    loops.reset()
+    assert walk(loops, [Action.FORWARD] * 30) == [False] * 30
+    loops.reset()
+    assert walk(loops, [Action.TURN_LEFT, Action.TURN_RIGHT]) == [False, False]
+    assert loops.visit(b, False) is False
+    assert LoopDetector(window=2).visit(a, False) is False
