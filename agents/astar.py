@@ -9,7 +9,9 @@ turn step -- ``reverse_turn`` turn steps to undo its last turn while two steps a
 (hysteresis: with 15 degree turns a path between two headings otherwise makes it zigzag left,
 forward, right, forward) -- and
 otherwise drives forward; it stops when the (estimated) goal distance is below ``goal_radius``.
-It replans when the goal or the grid changes, when the map changes so that the rest of the path is
+It replans when the goal (by more than half a cell: a goal rebuilt from an
+observation's float32 distance and bearing jitters by micrometres) or the grid changes, when the
+map changes so that the rest of the path is
 no longer traversable (or ``replan_every`` steps after the last plan), when it strays from the
 path, and when a forward action was blocked (its bump sensor, else no progress of the pose; it then
 marks contact points ahead as obstacles, except where its body stood: a contact point its body
@@ -323,6 +325,10 @@ class AStarAgent:
         distance = float(np.linalg.norm(goal - pose[:2]))
         if distance <= self.goal_radius or (blocked and distance <= self.blocked_goal_radius):
             return Action.STOP  # at the goal, or bumped into something just short of it
+        if self._plan_key is not None and spec == self._plan_key[0]:
+            planned = np.asarray(self._plan_key[1])
+            if np.linalg.norm(goal - planned) <= 0.5 * spec.resolution:
+                goal = planned  # the same goal, up to the float32 of an observation's goal_rel
         key = (spec, tuple(goal))
         changed = (
             self._plan_map is None or key != self._plan_key or not np.array_equal(obstacles, self._plan_map)

@@ -362,3 +362,21 @@ def test_a_bump_marks_the_way_ahead_even_where_the_robot_stood_before():
     free = agent.traversable(np.zeros(spec.shape, bool), spec, here, 0.5 * 0.198)
     r, c = spec.world_to_cell(here[:2] + (0.198 + RES) * heading)  # just past the footprint
     assert not free[r, c]
+
+
+def test_a_goal_jittering_by_float32_rounding_does_not_replan_every_step():
+    """Home seed 17 (A* + classical, b4e3a47): the goal rebuilt from the observation's float32
+    (distance, bearing) moved by micrometres on every turn, so the agent replanned on every step;
+    standing in an obstacle's inflation with an exit to either side, the plans flipped between the
+    two, and it turned left, right, left, ... for 180 steps. A goal within half a cell of the
+    planned one is the same goal."""
+    occ, spec = room()
+    robot = KinematicRobot(occ, spec, (1.0, 1.0, 0.0))
+    agent = AStarAgent(robot_radius=RADIUS)
+    goal = np.array([1.0, 5.0])
+    for step in range(6):
+        jitter = np.float32(1e-6) * (-1) ** step * np.array([1.0, -1.0])
+        robot.step(agent.act(robot.pose, occ, spec, goal + jitter))
+    assert agent.replans == 1
+    agent.act(robot.pose, occ, spec, goal + (0.0, 0.2))  # a goal that moved
+    assert agent.replans == 2
