@@ -13,6 +13,7 @@ from scipy import ndimage
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
 from vgpnav_env.perception.occupancy import OCCUPIED
+from vgpnav_env.perception.pipeline import PerceptionConfig
 from vgpnav_env.perception.state import EKFConfig
 from vgpnav_env.wrappers import VGPNavObservation
 
@@ -372,3 +373,27 @@ def test_wrapper_without_database_dir_asks_for_the_command_lines_build(monkeypat
     with pytest.raises(RuntimeError, match="no build here"):
         VGPNavObservation(gym.make(ENV_ID, scene="home", image_size=HOME_SIZE))
     assert asked == [("home", HOME_SIZE, "realistic", FOVY_DEG)]
+
+
+def test_vector_env_merges_infos_of_frames_with_different_reference_counts(database):
+    """Gymnasium's vector envs stack each info entry across envs; the references a frame used
+    vary in number (here k = 10 beside k = 6), which an array entry could not stack."""
+
+    def make(k: int):
+        return lambda: VGPNavObservation(
+            gym.make(ENV_ID, scene="home", image_size=HOME_SIZE, max_steps=3),
+            "simulated",
+            database=database,
+            perception_config=PerceptionConfig.ablation(k=k),
+        )
+
+    envs = gym.vector.SyncVectorEnv([make(10), make(6)])
+    try:
+        _, info = envs.reset(seed=[2, 2])
+        counts = [len(r) for r in info["perception"]["references"]]
+        assert counts[0] > counts[1] > 0 and info["_perception"].all()
+        for _ in range(4):  # past the autoreset after max_steps
+            _, _, _, _, info = envs.step(np.array([2, 2]))
+            assert all(isinstance(r, tuple) for r in info["perception"]["references"])
+    finally:
+        envs.close()

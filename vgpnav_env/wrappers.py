@@ -361,7 +361,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
                     "scale": result.scale,
                     "scale_source": result.scale_source,
                     "z_ground": result.z_ground,
-                    "references": result.references,
+                    # a tuple: its length varies per frame, so vector envs keep it as an object
+                    "references": tuple(int(i) for i in result.references),
                     "n_confident_pairs": result.n_confident_pairs,
                     "source": result.source,
                     "fix": self.pose_state.fix,
