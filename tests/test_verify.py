@@ -396,3 +396,27 @@ def test_a_rival_does_not_change_the_share_the_pose_explains() -> None:
     with_rival = verify_pose(turned, T_wi, out, CAMERA, config, rivals=[far], own=own)
     assert alone.check == with_rival.check == "share", with_rival.detail
     assert with_rival.detail == alone.detail == "the pose explains 32% of the pairs' confidence"
+
+
+def test_a_pose_two_references_barely_explain_is_rejected() -> None:
+    # Room A's pose explained by two references with 60 matches each: each is over
+    # min_support_matches, but 120 matches together are under the total floor.
+    # (every k-th match: walls and floor alike, so off-plane matches remain)
+    T_a, _, T_wi, out = _aliased_frame("A")
+    keep = [0, 1]
+    spread = [out.matches[i][np.linspace(0, len(out.matches[i]) - 1, 60).astype(int)] for i in keep]
+    few = replace(
+        out, T_qi=out.T_qi[keep], confidence=out.confidence[keep], n_matches=np.full(2, 60),
+        scale_valid=out.scale_valid[keep], matches=spread,
+    )  # fmt: skip
+    T_wi = T_wi[keep]
+    free = verify_pose(T_a, T_wi, few, CAMERA, VerifyConfig(min_total_support=None))
+    assert free.ok and free.n_supporting == 2 and 110 <= free.strength <= 120, free.detail
+    weak = verify_pose(T_a, T_wi, few, CAMERA, VerifyConfig(min_total_support=140))
+    assert not weak.ok and weak.reason == "unverified" and weak.check == "support", weak.detail
+    assert weak.detail == f"2 references explain only {free.strength} matches"
+    # With all their matches the same two references confirm the pose.
+    full = replace(few, n_matches=out.n_matches[keep], matches=[out.matches[i] for i in keep])
+    assert verify_pose(T_a, T_wi, full, CAMERA, VerifyConfig(min_total_support=140)).ok
+    with pytest.raises(ValueError, match="min_total_support"):
+        VerifyConfig(min_total_support=0)
