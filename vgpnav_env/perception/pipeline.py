@@ -445,8 +445,9 @@ class Perceiver:
         support = rival_pairs(support, T_wi, out, self.camera, v, own)
         rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
         camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
-        if pose.anchor is not None and np.isfinite(self._map_camera_z()):
-            camera_z = self._map_camera_z()  # the pose would anchor the ground: the map's floor checks it
+        map_z = self._map_camera_z()
+        if pose.anchor is not None and np.isfinite(map_z):
+            camera_z = map_z  # the pose would anchor the ground: the map's floor checks it
         return verify_pose(pose.T_wc, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
 
     def _map_camera_z(self) -> float:
