@@ -49,6 +49,7 @@ from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, Percepti
 from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, RetrievalConfig, nearby_cameras
 from vgpnav_env.perception.scale_recovery import GroundAnchor
 from vgpnav_env.perception.state import EKFState
+from vgpnav_env.perception.verify import PoseGate
 from vgpnav_env.robot import base_pose, camera_T_wc
 from vgpnav_env.runs import Build, load_build, load_run_depth, read_build_summary, read_run_meta
 
@@ -404,14 +405,15 @@ class QueryWorker:
         max_depth: float,
         max_points: int,
         predicted: NDArray[np.float64] | None = None,
+        prior: PoseGate | None = None,
     ) -> QueryFrame:
         """Query frame ``i`` perceived and scored; the backbone's noise and the Acc / Comp
         subsample are seeded by (seed, i), so the frame's result does not depend on the frames
-        perceived before it (only on the ground anchor and, tracking, the ``predicted`` camera
-        pose the references are chosen around)."""
+        perceived before it (only on the ground anchor and, temporal mode, the ``predicted`` camera
+        pose the references are chosen around and the state estimate's ``prior``)."""
         query, depth = self.build.query, self.depth[i]
         self.backbone.reseed(np.random.default_rng([self.seed, i]))
-        result = perceiver.perceive(query.images[i], self.privileged(i), predicted=predicted)
+        result = perceiver.perceive(query.images[i], self.privileged(i), predicted=predicted, prior=prior)
         T = query.poses[i]
         in_range = np.isfinite(depth) & (depth > 0) & (depth <= max_depth)
         surface = query.camera.backproject_world(depth, T, in_range)
@@ -479,8 +481,10 @@ def _temporal_task(
     """Temporal mode: every frame in order, an :class:`EKFState` carried along by simulated wheel
     odometry (:func:`odometry`, seeded by (seed, frame); refined by visual odometry when asked,
     :func:`~vgpnav_env.perception.odometry.fuse_motion`); while it is certain the perceiver tracks
-    (references around the predicted camera), and it takes in the perceived poses. The ground is
-    anchored on the first frame standing still, as in paper mode. A record's ``cpu`` timing
+    (references around the predicted camera), its :meth:`~EKFState.prior` goes to the perceiver,
+    and it takes in the perceived poses
+    (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.measurement`). The ground is anchored
+    on the first frame standing still, as in paper mode. A record's ``cpu`` timing
     includes the odometry's (``odometry_cpu``)."""
     config, frames, max_depth, max_points, visual_odometry = item
     query = state.build.query
@@ -512,9 +516,9 @@ def _temporal_task(
         vo_cpu = time.process_time() - vo_cpu
         predicted = ekf.tracking_pose()
         T_pred = None if predicted is None else camera_T_wc(predicted, height, pitch)
-        frame = state.perceive(perceiver, i, max_depth, max_points, predicted=T_pred)
-        result = frame.result
-        ekf.correct(base_pose(result.T_wc) if result.localized else None)
+        frame = state.perceive(perceiver, i, max_depth, max_points, predicted=T_pred, prior=ekf.prior())
+        measured = frame.result.measurement
+        ekf.correct(None if measured is None else base_pose(measured))
         error = float(np.linalg.norm(ekf.estimate[:2] - truth[n, :2])) if ekf.has_estimate else float("nan")
         timings = frame.record.timings | {"cpu": frame.record.timings["cpu"] + vo_cpu, "odometry_cpu": vo_cpu}
         record = replace(

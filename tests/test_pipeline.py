@@ -394,6 +394,34 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
         PoseGate(T, 0.5, 1.0)
 
 
+def test_a_verified_pose_outside_the_prior_is_inconsistent_but_still_measured(
+    database: Database, query
+) -> None:
+    run, depth = query
+    perceiver = Perceiver(
+        database, make_backbone("simulated", seed=5), config=PerceptionConfig(camera_height=QUERY_HEIGHT)
+    )
+    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
+    perceiver.initialize(run.images[:1], priv[:1])
+    T = run.poses[2]
+    before = perceiver.map.logodds.copy()
+    # The state estimate expects the robot 1 m away: the (right) pose is verified but contradicts it.
+    far = base_pose(T) + [1.0, 0.0, 0.0]
+    lost = perceiver.perceive(run.images[2], priv[2], prior=PoseGate(far, 0.3, np.radians(10.0)))
+    assert lost.status == "lost" and lost.reason == "inconsistent motion" and lost.verdict.ok
+    assert "1.00 m" in lost.detail and len(lost.points_w) == 0 and lost.confidence == 0
+    np.testing.assert_array_equal(perceiver.map.logodds, before)
+    # ...yet it reaches the state estimate, which counts such poses toward relocalizing.
+    assert lost.measurement is lost.T_wc and errors(lost.T_wc, T)[0] < 0.01
+    # Expected there: localized, measured and fused as without a prior.
+    ok = perceiver.perceive(run.images[2], priv[2], prior=PoseGate(base_pose(T), 0.3, np.radians(10.0)))
+    assert ok.localized and ok.measurement is ok.T_wc and errors(ok.T_wc, T)[0] < 0.01
+    assert not np.array_equal(perceiver.map.logodds, before)
+    # A pose the images reject, or one outside the odometry gate, is no measurement.
+    gated = perceiver.perceive(run.images[2], priv[2], gate=PoseGate(far, 0.3, np.radians(10.0)))
+    assert gated.reason == "inconsistent motion" and gated.measurement is None
+
+
 def test_the_map_floor_checks_the_pose_that_anchors_the_ground(database: Database, query) -> None:
     """Hospital:1 seed 2: a verified single-pair pose with the camera 0.50 m too high anchored the
     floor there, and every right pose after it failed the camera-height check. A pose (at reset or

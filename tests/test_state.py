@@ -343,3 +343,36 @@ def test_ekf_recaptures_a_drifted_estimate_after_kidnap_fixes_despite_its_suppor
         outcomes.append(s.fix)
     assert outcomes == ["rejected", "rejected", "reset", "accepted"]
     np.testing.assert_allclose(s.estimate[:2], (0.0, 0.0), atol=0.01)
+
+
+def test_ekf_prior_is_its_fix_gate_while_narrower_than_a_gross_error():
+    s = ekf()
+    assert s.prior() is None  # no estimate yet
+    s = started()
+    cfg = s.config
+    # Right after the first estimate (P = a fix's covariance): the gate of a fix, 3.77 sigma of the
+    # sum of both, 0.27 m and 10.7 deg (within 0.4 m / 15 deg).
+    prior = s.prior()
+    np.testing.assert_allclose(prior.pose, s.estimate)
+    assert prior.max_distance == pytest.approx(np.sqrt(cfg.gate_chi2 * 2) * cfg.fix_sigma)
+    assert np.degrees(prior.max_yaw) == pytest.approx(np.sqrt(cfg.gate_chi2 * 2) * cfg.fix_sigma_deg)
+    # A fix inside the prior is one the EKF accepts.
+    s.predict(Action.FORWARD, IMAGES[1])
+    inside = s.prior().pose + [0.9 * s.prior().max_distance, 0.0, 0.0]
+    assert s.prior().admits(_camera(inside)) and s.mahalanobis2(inside) <= cfg.gate_chi2
+    # Turning while lost widens the yaw bound by ~1.2 deg per turn, past 15 deg after 4: no prior.
+    turns = 0
+    while s.prior() is not None:
+        s.predict(Action.TURN_LEFT, IMAGES[1 + turns % 3])
+        s.correct(None)
+        turns += 1
+    assert turns == 4
+    with pytest.raises(ValueError, match="positive"):
+        EKFConfig(prior_max_m=0.0)
+
+
+def _camera(pose) -> np.ndarray:
+    """A camera pose at the planar ``pose`` (x, y, yaw), 20 deg down."""
+    from vgpnav_env.geometry import camera_pose
+
+    return camera_pose([pose[0], pose[1], 1.2], pose[2], np.radians(20.0))

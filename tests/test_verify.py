@@ -9,9 +9,10 @@ import pytest
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
-from vgpnav_env.perception.motion_averaging import MotionResult
+from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
 from vgpnav_env.perception.scale_recovery import GroundAnchor, ScaleEstimate
 from vgpnav_env.perception.verify import (
+    PoseGate,
     VerifyConfig,
     check_height,
     check_scale,
@@ -20,9 +21,12 @@ from vgpnav_env.perception.verify import (
     off_plane_matches,
     pair_support,
     pooled_pairs,
+    prior_hypothesis,
+    prior_pairs,
     rival_pairs,
     verify_pose,
 )
+from vgpnav_env.robot import base_pose
 
 
 def _motion(z: float, reason: str = "") -> MotionResult:
@@ -128,6 +132,104 @@ def test_identical_rooms_are_ambiguous_never_the_wrong_room() -> None:
     T_a, T_b, T_wi, out = _aliased_frame("A")
     right = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b])
     assert right.ok and right.n_supporting == 3 and right.rival_strength == 0 and right.confidence > 0.8
+
+
+def test_a_confident_prior_picks_the_room_the_robot_is_in_never_the_other() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    config = VerifyConfig()
+    # The state estimate expects the robot 0.1 m / 3 deg from room A's pose (a 0.25 m / 9 deg prior):
+    # room B's equal support no longer makes room A's pose ambiguous; it is confirmed.
+    expected = base_pose(T_a) + [0.1, 0.0, np.radians(3.0)]
+    prior = PoseGate(expected, 0.25, np.radians(9.0))
+    right = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=prior)
+    assert right.ok and right.rival_strength == 0 and right.support[:3].all(), right.detail
+    # Room B's pose lies outside the prior: verified as without one, still ambiguous (never room B).
+    wrong = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a], prior=prior)
+    assert not wrong.ok and wrong.reason == "ambiguous"
+    # A prior around room B confirms nothing in room A, and picks B only where B is expected.
+    away = PoseGate(base_pose(T_b), 0.25, np.radians(9.0))
+    assert verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=away).reason == "ambiguous"
+    # A rival inside the prior still counts: a prior wide enough for both rooms separates nothing.
+    both = PoseGate(0.5 * (base_pose(T_a) + base_pose(T_b)), 6.0, np.radians(9.0))
+    assert verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=both).reason == "ambiguous"
+
+
+def test_the_prior_picks_the_rival_in_the_room_the_robot_is_in() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    config, averaging = VerifyConfig(), MotionAveragingConfig()
+    # The averaged pose landed in room B; room A's view is its rival. The robot is expected in A.
+    prior = PoseGate(base_pose(T_a) + [0.05, -0.05, np.radians(2.0)], 0.25, np.radians(9.0))
+    assert verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a], prior=prior).reason == "ambiguous"
+    T, verdict = prior_hypothesis(
+        T_b, [T_a], T_wi, out, CAMERA, config, prior, scale=1.0, averaging=averaging
+    )
+    assert T is T_a and verdict.ok and verdict.support[:3].all(), verdict.detail
+    # Expected in B (the pose's own room) or elsewhere: no rival inside the prior, nothing picked.
+    in_b = PoseGate(base_pose(T_b), 0.25, np.radians(9.0))
+    elsewhere = PoseGate(base_pose(T_a) + [3.0, 0.0, 0.0], 0.25, np.radians(9.0))
+    for other in (in_b, elsewhere):
+        assert (
+            prior_hypothesis(T_b, [T_a], T_wi, out, CAMERA, config, other, scale=1.0, averaging=averaging)
+            is None
+        )
+    # A rival inside the prior that the images do not confirm is not picked (room A's references only
+    # and a rival turned 8 deg from A's pose: one reference explains 80 of its matches, the others
+    # under 10).
+    _, _, T_wi_a, out_a = _aliased_frame("A")
+    off = camera_pose(T_a[:3, 3], np.deg2rad(53.0), np.deg2rad(20.0))
+    wide = PoseGate(base_pose(T_a), 0.3, np.radians(9.0))
+    assert (
+        prior_hypothesis(T_b, [off], T_wi_a, out_a, CAMERA, config, wide, scale=1.0, averaging=averaging)
+        is None
+    )
+
+
+def test_prior_pairs_place_the_query_in_the_room_the_robot_is_in() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    # Identical rooms: room B's pairs see the query as room A's do (relative poses at half scale).
+    T_qi = np.array([invert_pose(T_a) @ T for T in T_wi[:3]] * 2)
+    T_qi[:, :3, 3] *= 0.5
+    out = replace(out, T_qi=T_qi)
+    in_a = PoseGate(base_pose(T_a) + [0.1, 0.05, np.radians(3.0)], 0.25, np.radians(9.0))
+    assert prior_pairs(T_wi, out, in_a).tolist() == [True] * 3 + [False] * 3
+    in_b = PoseGate(base_pose(T_b), 0.25, np.radians(9.0))
+    assert prior_pairs(T_wi, out, in_b).tolist() == [False] * 3 + [True] * 3
+    turned = PoseGate(base_pose(T_a) + [0.0, 0.0, np.radians(20.0)], 0.25, np.radians(9.0))
+    assert not prior_pairs(T_wi, out, turned).any()
+    aside = PoseGate(base_pose(T_a) + [0.0, 1.0, 0.0], 0.25, np.radians(9.0))
+    assert not prior_pairs(T_wi, out, aside).any()
+    # The pairs the prior keeps average to room A's pose; all six give room B's (B's rays win the tie).
+    kept = np.where(prior_pairs(T_wi, out, in_a), out.confidence, 0.0)
+    motion = average_motion(T_wi, out.T_qi, kept)
+    assert motion.ok and np.linalg.norm(motion.T_wq[:3, 3] - T_a[:3, 3]) < 1e-6
+    assert np.linalg.norm(average_motion(T_wi, out.T_qi, out.confidence).T_wq[:3, 3] - T_b[:3, 3]) < 1e-3
+
+
+def test_a_pose_inside_the_prior_needs_supporting_references_not_the_total_floor() -> None:
+    T_a, T_b, T_wi, out = _aliased_frame("A")
+    # Two references with 40 explained matches each: under min_total_support (140) without a prior.
+    two = replace(
+        out, T_qi=out.T_qi[:2], confidence=out.confidence[:2], n_matches=np.array([40, 40]),
+        scale_valid=out.scale_valid[:2], matches=[m[:40] for m in out.matches[:2]],
+    )  # fmt: skip
+    config = VerifyConfig()
+    alone = verify_pose(T_a, T_wi[:2], two, CAMERA, config)
+    assert alone.reason == "unverified" and alone.check == "support" and "only 80" in alone.detail
+    prior = PoseGate(base_pose(T_a), 0.25, np.radians(9.0))
+    placed = verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=prior)
+    assert placed.ok and placed.strength >= 75 and "inside the prior" in placed.detail
+    # One of them alone (under single_reference_support), or the camera rolled 3 deg (right poses:
+    # < 0.5 deg), or outside the prior: unverified.
+    one = replace(two, T_qi=two.T_qi[:1], confidence=two.confidence[:1], n_matches=two.n_matches[:1],
+                  scale_valid=two.scale_valid[:1], matches=two.matches[:1])  # fmt: skip
+    assert verify_pose(T_a, T_wi[:1], one, CAMERA, config, prior=prior).check == "support"
+    rolled = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(20.0), roll=np.deg2rad(3.0))
+    assert verify_pose(rolled, T_wi[:2], two, CAMERA, config, prior=prior).reason == "unverified"
+    elsewhere = PoseGate(base_pose(T_a) + [0.5, 0.0, 0.0], 0.25, np.radians(9.0))
+    assert verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=elsewhere).check == "support"
+    # The mount check stays: the camera 0.9 m too low is rejected inside the prior too.
+    low = verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=prior, camera_z=2.1)
+    assert low.reason == "unverified" and low.check == "mount"
 
 
 def test_pose_from_another_rooms_references_is_rejected() -> None:

@@ -321,6 +321,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             privileged,
             gate=self.pose_state.gate(),
             predicted=None if predicted is None else self.env.unwrapped.camera_T_wc(predicted),
+            prior=self.pose_state.prior(),
             fuse=self.perception_mode == "paper",
         )
         new_obs, info = self._observe(obs, info, result, first=False)
@@ -330,8 +331,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self, obs: dict[str, NDArray], info: dict[str, Any], result: PerceptionResult, first: bool
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         """The navigation observation (and the evaluation info) after the pose state took in ``result``."""
-        perceived = result.localized and result.T_wc is not None
-        self.pose_state.correct(base_pose(result.T_wc) if perceived else None, result.confidence)
+        measured = result.measurement
+        self.pose_state.correct(None if measured is None else base_pose(measured), result.confidence)
         localized = self.pose_state.localized
         if localized and not first and self.perception_mode != "paper":
             self.perceiver.fuse(result)  # the map takes only frames whose pose the estimator trusts

@@ -361,6 +361,9 @@ class ModelPoseState:
     def tracking_pose(self) -> None:
         return None
 
+    def prior(self) -> None:
+        return None
+
     def update(self, estimate: NDArray[np.float64], localized: bool, action: Any = None) -> None:
         """This frame's ``estimate`` and outcome, after ``action`` (None at the episode start)."""
         self.estimate, self.localized = np.asarray(estimate, float).copy(), bool(localized)

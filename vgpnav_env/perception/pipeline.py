@@ -73,6 +73,8 @@ from vgpnav_env.perception.verify import (
     implausible_mount,
     pair_support,
     pooled_pairs,
+    prior_hypothesis,
+    prior_pairs,
     reference_support,
     rival_pairs,
     rival_poses,
@@ -90,7 +92,8 @@ LOST_REASONS: dict[str, str] = {
     "too few matches": "no reference pair passed the backbone (too few consistent feature matches)",
     "no consensus": "the references' poses disagree (rotation consensus, ray triangulation, camera height)",
     "no ground": "no metric scale: no ground plane and no ray-implied scale",
-    "inconsistent motion": "the pose lies outside the caller's odometry gate (PoseGate)",
+    "inconsistent motion": "the pose lies outside the caller's odometry gate (PoseGate), or, verified, "
+    "outside the prior of its state estimate",
     "unverified": "the images do not confirm the pose (verify_pose: epipolar support, gravity, height)",
     "ambiguous": "the images confirm a distinct rival pose as well (e.g. identical rooms)",
 }
@@ -108,7 +111,8 @@ TIMING_KEYS = (
 PERCEPTION_MODES = {
     "paper": "every frame perceived on its own, as published (ground anchored once)",
     "temporal": "tracking: references around the pose an EKF predicts from action odometry, global "
-    "retrieval to relocalize; the EKF gates the fixes, detects kidnapping; only trusted frames are mapped",
+    "retrieval to relocalize; the EKF gates the fixes, detects kidnapping, and its prior places poses among "
+    "identical places; only trusted frames are mapped",
 }
 
 
@@ -197,6 +201,16 @@ class PerceptionResult:
     @property
     def localized(self) -> bool:
         return self.status == "localized"
+
+    @property
+    def measurement(self) -> NDArray[np.float64] | None:
+        """The pose a state estimator takes in: ``T_wc`` when localized, or when the images verified
+        it and only the caller's ``prior`` rejected it ("inconsistent motion": the estimator counts
+        it toward relocalizing, should its estimate be the wrong one); else None."""
+        verified = self.verdict is not None and self.verdict.ok
+        if self.localized or (self.reason == "inconsistent motion" and verified):
+            return self.T_wc
+        return None
 
 
 @dataclass(frozen=True)
@@ -337,6 +351,7 @@ class Perceiver:
         gate: PoseGate | None = None,
         *,
         predicted: NDArray[np.float64] | None = None,
+        prior: PoseGate | None = None,
         fuse: bool = True,
     ) -> PerceptionResult:
         """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`.
@@ -346,10 +361,13 @@ class Perceiver:
         among the database cameras near it (:func:`tracked_references`; none near: lost), else by
         global retrieval. One attempt per frame: after a lost tracked frame the caller relocalizes
         on the next (:meth:`~vgpnav_env.perception.state.EKFState.tracking_pose`).
+        ``prior``: where a state estimate confidently expects the camera
+        (:meth:`~vgpnav_env.perception.state.EKFState.prior`); unlike ``gate`` it rejects nothing,
+        a pose inside it needs less from the images (:func:`verify_pose`).
         ``fuse=False``: the caller fuses the frame later if it trusts it (:meth:`fuse`).
         """
         clock = _Clock()
-        result, points_w = self._attempt(rgb, privileged, gate, clock, predicted)
+        result, points_w = self._attempt(rgb, privileged, gate, clock, predicted, prior)
         if result.localized and fuse:
             with clock.stage("occupancy"):
                 result = replace(result, classes=self._fuse(result, points_w))
@@ -377,11 +395,14 @@ class Perceiver:
         gate: PoseGate | None,
         clock: _Clock,
         predicted: NDArray[np.float64] | None,
+        prior: PoseGate | None = None,
     ) -> tuple[PerceptionResult, NDArray[np.float64] | None]:
         """Stages 1-4 and verification of one frame (not fused: ``classes`` None) and its metric
         points (None when lost); references around ``predicted`` (None: global retrieval); a
         tracking attempt without near cameras is lost."""
         loc = self._localize(rgb, privileged, clock, predicted)  # stages 1-3
+        if not loc.ok:
+            loc = self._prior_consensus(loc, clock, prior)
         if not loc.ok:
             loc = self._single_pair_fallback(loc, clock)
         if not loc.ok:
@@ -392,7 +413,20 @@ class Perceiver:
         if not loc.ok:
             return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground), None
         with clock.stage("verification"):
-            verdict = self._verify(loc, pose)
+            T_wc, verdict = self._verify(loc, pose, prior)
+        if T_wc is not pose.T_wc:  # the prior picked a rival: its pose and points
+            pose = replace(pose, T_wc=T_wc)
+            points_w = self._metric_points(loc.backbone, T_wc, pose.scale.scale)
+            picked = "the prior picked a rival pose"
+            loc = replace(loc, detail=f"{picked} ({loc.detail})" if loc.detail else picked)
+        if verdict.ok and prior is not None and not prior.admits(pose.T_wc):
+            distance, yaw = prior.deviation(pose.T_wc)
+            detail = f"verified pose {distance:.2f} m / {np.degrees(yaw):.0f} deg from the prior's centre"
+            loc = replace(loc, reason="inconsistent motion", detail=detail)
+            lost = _lost(
+                loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
+            )
+            return lost, None
         if verdict.ok and pose.anchor is not None and not self.anchor.initialized:
             self.anchor = pose.anchor  # the first verified pose anchors the ground
         if not verdict.ok:
@@ -428,10 +462,14 @@ class Perceiver:
         )
         return result, points_w
 
-    def _verify(self, loc: _Localization, pose: _MetricPose) -> Verdict:
+    def _verify(
+        self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None = None
+    ) -> tuple[NDArray[np.float64], Verdict]:
         """:func:`verify_pose` of the metric pose against the frame's references and those of the
         round that lost (:func:`pooled_pairs`), with the rival poses of the pairs it does not
-        explain, or in small part (:func:`rival_pairs`, :func:`rival_poses`)."""
+        explain, or in small part (:func:`rival_pairs`, :func:`rival_poses`): the pose and its
+        verdict. With a ``prior`` that the pose is not confirmed inside, the rival the prior picks
+        (:func:`prior_hypothesis`) replaces it when there is one."""
         refs, out = loc.references, loc.backbone
         if loc.other is not None:
             refs, out = pooled_pairs(refs, out, *loc.other)
@@ -448,7 +486,16 @@ class Perceiver:
         map_z = self._map_camera_z()
         if pose.anchor is not None and np.isfinite(map_z):
             camera_z = map_z  # the pose would anchor the ground: the map's floor checks it
-        return verify_pose(pose.T_wc, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
+        verdict = verify_pose(
+            pose.T_wc, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own, prior=prior
+        )
+        if prior is None or (verdict.ok and prior.admits(pose.T_wc)):
+            return pose.T_wc, verdict
+        picked = prior_hypothesis(
+            pose.T_wc, rivals, T_wi, out, self.camera, v, prior,
+            scale=pose.scale.scale, averaging=cfg.averaging, camera_z=camera_z, own=own,
+        )  # fmt: skip
+        return (pose.T_wc, verdict) if picked is None else picked
 
     def _map_camera_z(self) -> float:
         """World height (metres) of a camera at the calibrated height above the floor the
@@ -553,6 +600,26 @@ class Perceiver:
             )
             motion = check_height(motion, self.anchor, cfg.camera_height, cfg.verify)
         return out, motion
+
+    def _prior_consensus(self, loc: _Localization, clock: _Clock, prior: PoseGate | None) -> _Localization:
+        """``loc`` re-averaged over its pairs that agree with the ``prior`` (:func:`prior_pairs`), at
+        least two, when motion averaging over all of them failed; else unchanged."""
+        if prior is None or loc.motion is None or loc.backbone is None:
+            return loc
+        cfg, out = self.config, loc.backbone
+        T_wi = self.database.poses[loc.references]
+        with clock.stage("motion_averaging"):
+            agree = prior_pairs(T_wi, out, prior)
+            if agree.sum() < 2:
+                return loc
+            confidence = np.where(agree, out.confidence, 0.0)
+            motion = average_motion(T_wi, out.T_qi, confidence, cfg.averaging, scale_valid=out.scale_valid)
+            motion = check_height(motion, self.anchor, cfg.camera_height, cfg.verify)
+        if not motion.ok:
+            return loc
+        return replace(
+            loc, motion=motion, reason="", detail=f"pairs agreeing with the prior after: {loc.detail}"
+        )
 
     def _single_pair_fallback(self, loc: _Localization, clock: _Clock) -> _Localization:
         """``loc`` placed by its most confident pair (:func:`single_pair_fallback`), else unchanged."""

@@ -112,6 +112,9 @@ class VerifyConfig:
     of the other; in identical wards the place with more views retrieved is not the likelier one.
     Offline on the same hospital poses, with the rule above, 2: gross 11 -> 7 (4.8 -> 3.2 %), lost
     31.1 -> 34.7 %, recall at 5 cm / 5 deg 0.656 -> 0.631; home unchanged (0 gross, lost 23.4 %).
+    ``prior_max_roll_deg``: a pose inside a state estimate's prior counts as placed by it only with
+    its camera's roll within this (``verify_pose``'s ``prior``); on home's temporal run right poses
+    rolled at most 0.5 deg, a wrong one inside the prior (11 deg off in pitch) 3 deg.
     """
 
     pose_height_tolerance: float | None = 0.3
@@ -135,6 +138,7 @@ class VerifyConfig:
     rival_claim_ratio: float | None = 0.5
     ambiguity_references: int | None = 2
     max_roll_deg: float | None = 5.0
+    prior_max_roll_deg: float = 1.5
     pitch_range_deg: tuple[float, float] | None = (5.0, 40.0)
     confidence_matches: float = 100.0
 
@@ -167,6 +171,8 @@ class VerifyConfig:
             raise ValueError(
                 f"min_explained_confidence must be in (0, 1] or None, got {self.min_explained_confidence}"
             )
+        if not self.prior_max_roll_deg > 0:
+            raise ValueError(f"prior_max_roll_deg must be > 0 deg, got {self.prior_max_roll_deg}")
         if self.ambiguity_references is not None and self.ambiguity_references < 1:
             raise ValueError(f"ambiguity_references must be >= 1 or None, got {self.ambiguity_references}")
         if self.rival_claim_ratio is not None and not 0 < self.rival_claim_ratio <= 1:
@@ -403,6 +409,7 @@ def verify_pose(
     rivals: Sequence[NDArray[np.float64]] = (),
     camera_z: float = float("nan"),
     own: NDArray[np.int64] | None = None,
+    prior: PoseGate | None = None,
 ) -> Verdict:
     """Check the pose ``T_wq`` (metric, W) against the query's matches with references ``T_wi``
     (k, 4, 4; ``out``: the backbone output of the query with exactly these references).
@@ -425,6 +432,16 @@ def verify_pose(
     own references to count. With ``min_explained_confidence``, the pose must explain that share of
     the pairs' confidence (:func:`explained_confidence`), else "unverified". Nothing here depends
     on how the pose or the references were found (retrieval, tracking).
+
+    ``prior``: where a state estimate confidently expects the camera (e.g. the EKF's gate,
+    :meth:`~vgpnav_env.perception.state.EKFState.prior`; never wider than a gross error). A pose
+    inside it, its camera rolled at most ``prior_max_roll_deg`` (right poses roll under 0.5 deg,
+    a wrong one 11 deg off in pitch rolled 3 deg), has its place from the estimate and needs from
+    the images only its precise pose: rivals outside the prior do not count (the same view in an
+    identical ward the robot cannot have reached), and the ``min_total_support``, plane and share
+    checks are waived (the mount check and the supporting references stay). A pose outside it is
+    verified as without a prior (the :class:`~vgpnav_env.perception.pipeline.Perceiver` then
+    loses it as "inconsistent motion", or takes the rival the prior picks, :func:`prior_hypothesis`).
     """
     raw = reference_support(T_wq, T_wi, out, camera, config)
     support = np.where(raw >= config.min_support_matches, raw, 0)
@@ -440,8 +457,9 @@ def verify_pose(
 
     rival_strength, rival = 0, None
     claim = config.rival_claim_ratio
+    placed = prior is not None and prior.admits(T_wq) and abs(_roll_deg(T_wq)) <= config.prior_max_roll_deg
     for T in rivals:
-        if implausible_mount(T, camera_z, config):
+        if implausible_mount(T, camera_z, config) or (placed and not prior.admits(T)):
             continue
         distinct = np.linalg.norm(T[:3, 3] - T_wq[:3, 3]) > config.rival_distance or rotation_angle(
             T[:3, :3], T_wq[:3, :3]
@@ -468,6 +486,8 @@ def verify_pose(
     mount = implausible_mount(T_wq, camera_z, config)
     if mount:
         return verdict("mount", mount)
+    if placed:
+        return _placed_verdict(verdict, support, rival, rival_strength, T_wq, config)
     if not _enough_references(support[explained], config):
         return verdict("support", f"{n} reference(s) support the pose (support {raw.tolist()})")
     if config.min_total_support is not None and strength < config.min_total_support:
@@ -486,6 +506,72 @@ def verify_pose(
         if share < config.min_explained_confidence:
             return verdict("share", f"the pose explains {share:.0%} of the pairs' confidence")
     return verdict("", f"{n} references, support {strength}, rival {rival_strength}")
+
+
+def prior_hypothesis(
+    T_wq: NDArray[np.float64],
+    rivals: Sequence[NDArray[np.float64]],
+    T_wi: NDArray[np.float64],
+    out: BackboneOutput,
+    camera: PinholeCamera,
+    config: VerifyConfig,
+    prior: PoseGate,
+    *,
+    scale: float,
+    averaging: MotionAveragingConfig,
+    camera_z: float = float("nan"),
+    own: NDArray[np.int64] | None = None,
+) -> tuple[NDArray[np.float64], Verdict] | None:
+    """The pose the ``prior`` picks when the images do not confirm ``T_wq`` inside it: of the
+    ``rivals`` of ``T_wq`` (:func:`rival_poses`) inside the prior, the one with the most support
+    that :func:`verify_pose` confirms as the pose (with the prior, against its own rivals and
+    ``T_wq``), and its verdict; None when none is confirmed. In identical wards the averaged pose
+    is often the other ward's view and the true place's pairs make a rival: inside the prior, it
+    is the robot's (on hospital's query run with the EKF's prior, 14 of 16 such rivals were within
+    5 cm / 5 deg). ``scale``: metres per backbone unit of the rivals' own rivals."""
+    best = None
+    for T in rivals:
+        if not prior.admits(T):
+            continue
+        support = rival_pairs(reference_support(T, T_wi, out, camera, config), T_wi, out, camera, config, own)
+        theirs = [T_wq, *rival_poses(T, T_wi, out, support, scale, averaging)]
+        verdict = verify_pose(
+            T, T_wi, out, camera, config, rivals=theirs, camera_z=camera_z, own=own, prior=prior
+        )
+        if verdict.ok and (best is None or verdict.strength > best[1].strength):
+            best = T, verdict
+    return best
+
+
+def _placed_verdict(
+    verdict: Callable[[str, str], Verdict],
+    support: NDArray[np.int64],
+    rival: NDArray[np.float64] | None,
+    rival_strength: int,
+    T_wq: NDArray[np.float64],
+    config: VerifyConfig,
+) -> Verdict:
+    """The verdict of :func:`verify_pose` on a pose inside its ``prior``: enough supporting
+    references (``support``, 0 under ``min_support_matches``; :func:`_enough_references`), no
+    rival inside the prior as strong (``ambiguity_ratio``)."""
+    if not _enough_references(support[support > 0], config):
+        n = np.count_nonzero(support)
+        return verdict(
+            "support", f"{n} reference(s) support the pose inside the prior (support {support.tolist()})"
+        )
+    if rival is not None and rival_strength >= config.ambiguity_ratio * _strongest(
+        support, config.ambiguity_references
+    ):
+        distance = np.linalg.norm(rival[:3, 3] - T_wq[:3, 3])
+        detail = f"a pose {distance:.1f} m away inside the prior has support {rival_strength}"
+        return verdict("ambiguity", detail)
+    n, strength = np.count_nonzero(support), int(support.sum())
+    return verdict("", f"inside the prior: {n} references, support {strength}")
+
+
+def _roll_deg(T_wc: NDArray[np.float64]) -> float:
+    """The roll (degrees) of an OpenCV camera pose ``T_wc`` about its optical axis, against gravity."""
+    return float(np.degrees(np.arcsin(np.clip(T_wc[2, 0], -1.0, 1.0))))
 
 
 def _strongest(support: NDArray[np.int64], m: int | None) -> int:
@@ -507,7 +593,7 @@ def implausible_mount(T_wc: NDArray[np.float64], camera_z: float, config: Verify
     """Why a ground robot's camera cannot have the pose ``T_wc`` (OpenCV camera to W) ("" when it
     can): roll, pitch or height (world z against ``camera_z`` metres, unchecked when nan) outside
     the :class:`VerifyConfig` limits (the "mount" check of :func:`verify_pose`)."""
-    roll = float(np.degrees(np.arcsin(np.clip(T_wc[2, 0], -1.0, 1.0))))
+    roll = _roll_deg(T_wc)
     if config.max_roll_deg is not None and abs(roll) > config.max_roll_deg:
         return f"camera rolled {roll:+.1f} deg"
     pitch = float(np.degrees(camera_yaw_pitch(T_wc)[1]))
@@ -696,6 +782,27 @@ def second_round_references(
     if len(new) == 0:
         return np.zeros(0, np.int64)
     return np.concatenate([np.array(keep, np.int64), new])
+
+
+def prior_pairs(T_wi: NDArray[np.float64], out: BackboneOutput, prior: PoseGate) -> NDArray[np.bool_]:
+    """(k,) the confident pairs whose own pose agrees with the ``prior``: the heading of
+    ``R_wi R_iq`` within the prior's yaw bound, and the ray from the reference centre towards the
+    query (``R_wi t_iq``) passing within its distance of the prior's position (horizontally, in
+    front of the reference). ``T_wi`` (k, 4, 4): the references' poses."""
+    x, y, yaw = np.asarray(prior.pose, float)
+    agree = np.zeros(len(T_wi), bool)
+    for i in np.flatnonzero(out.confidence > 0):
+        R = T_wi[i, :3, :3] @ out.T_iq[i, :3, :3]
+        if abs(wrap_angle(camera_yaw_pitch(make_pose(R, np.zeros(3)))[0] - yaw)) > prior.max_yaw:
+            continue
+        d = (T_wi[i, :3, :3] @ out.T_iq[i, :3, 3])[:2]
+        if not np.linalg.norm(d) > 0:
+            continue
+        d = d / np.linalg.norm(d)
+        to_prior = np.array([x, y]) - T_wi[i, :2, 3]
+        along = float(to_prior @ d)
+        agree[i] = along > 0 and float(np.linalg.norm(to_prior - along * d)) <= prior.max_distance
+    return agree
 
 
 def single_pair_fallback(
