@@ -101,6 +101,23 @@ def test_table_top_does_not_replace_the_floor() -> None:
     assert top.support > g.support and top.height_b == pytest.approx(-0.45 * UNKNOWN_SCALE, rel=0.01)
 
 
+def test_points_under_a_table_top_tell_it_from_the_floor() -> None:
+    """Nothing lies under the floor; a table top taken for the ground has the floor under it."""
+    rng = np.random.default_rng(1)
+    table = [(np.array([0.6, -1.5, 0.0]), np.array([2.0, 1.5, 0.75]))]
+    T_wc = camera_pose([0.0, 0.0, CAMERA_HEIGHT], 0.0, np.deg2rad(45))
+    pts = backbone_points(T_wc, rng, boxes=table)
+    floor = ground_peak(pts, T_wc[:3, :3])
+    top = ground_peak(pts, T_wc[:3, :3], config=ScaleConfig(relative_peak_support=1.0))
+    h = pts.reshape(-1, 3) @ T_wc[2, :3]  # heights (backbone units) in the gravity frame
+    expected = np.mean(h < top.height_b * 1.125)  # more than 12.5 % of its depth under the top
+    assert floor.below < 0.001 and expected > 0.1
+    assert top.below == pytest.approx(expected, abs=0.01)
+    assert not ground_peak(np.zeros((0, 3)), np.eye(3)).below
+    with pytest.raises(ValueError, match="below_margin"):
+        ScaleConfig(below_margin=-0.1)
+
+
 def test_no_ground_visible() -> None:
     rng = np.random.default_rng(2)
     # Looking up: nothing below the camera except wall.

@@ -26,7 +26,7 @@ def corner():
 
 
 def coverage_and_outliers(est, conf, truth) -> tuple[float, float, float]:
-    """Confident (>= 0.3, the pipeline's threshold) share of the true pixels, the fraction of them
+    """Confident (>= 0.3) share of the true pixels, the fraction of them
     more than 10 % off and their median relative error."""
     seen = truth > 0
     confident = seen & (conf >= 0.3)
@@ -164,5 +164,18 @@ def test_planar_fill_completes_a_textureless_plane_but_not_a_curved_surface():
     assert np.all(filled_conf[holes] >= 0.3) and np.all(filled_conf[holes] <= cfg.fill_confidence)
     np.testing.assert_allclose(filled_inv[holes], plane[holes], rtol=0.01)
     assert np.all(filled_conf[~confident & right] == 0.0) and np.all(filled_inv[right] == inv_depth[right])
-    np.testing.assert_array_equal(filled_inv[confident], inv_depth[confident])
     np.testing.assert_array_equal(filled_conf[confident], confidence[confident])
+    # Snapped: the plane's confident inliers take its depth (their 1 % noise averaged away); the
+    # outliers and the curved surface keep their own depths.
+    inliers = confident & ~outlier & (u < w // 2 - 2)
+    before = np.abs(inv_depth[inliers] / plane[inliers] - 1.0)
+    after = np.abs(filled_inv[inliers] / plane[inliers] - 1.0)
+    assert np.median(before) > 0.005 and np.median(after) < 0.001, (np.median(before), np.median(after))
+    off = outlier & (np.abs(inv_depth / plane - 1.0) > 0.1)
+    np.testing.assert_array_equal(filled_inv[off], inv_depth[off])
+    np.testing.assert_array_equal(filled_inv[confident & right], inv_depth[confident & right])
+    kept_inv, kept_conf = planar_fill(
+        image, inv_depth, confidence, visible, (0.1, 2.0), PlanarFillConfig(snap_inliers=False)
+    )
+    np.testing.assert_array_equal(kept_inv[confident], inv_depth[confident])
+    np.testing.assert_array_equal(kept_inv[holes], filled_inv[holes])

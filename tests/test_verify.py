@@ -10,7 +10,7 @@ import pytest
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
-from vgpnav_env.perception.scale_recovery import GroundAnchor, ScaleEstimate
+from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import (
     PoseGate,
     VerifyConfig,
@@ -20,6 +20,7 @@ from vgpnav_env.perception.verify import (
     explained_confidence,
     off_plane_matches,
     pair_support,
+    plausible_scale,
     pooled_pairs,
     prior_hypothesis,
     prior_pairs,
@@ -59,6 +60,38 @@ def test_check_scale_replaces_a_ground_scale_far_from_the_rays() -> None:
     assert check_scale(ground, 1.0, VerifyConfig(scale_check_ratio=None)) is ground
     with pytest.raises(ValueError, match="scale_check_ratio"):
         VerifyConfig(scale_check_ratio=1.0)
+
+
+def test_weak_rays_do_not_overrule_a_ground_with_nothing_under_it() -> None:
+    # Home's frames 21 and 79: two nearly parallel rays of weight < 0.1 implied half the scale of a
+    # ground peak with < 1 % of the points under it (the floor); a table top has the floor under it.
+    config = VerifyConfig(scale_check_ratio=1.5, strong_rays_weight=0.2, max_under_ground=0.03)
+    ground = ScaleEstimate(2.0, "ground")
+    floor = GroundEstimate(-0.6, 0.1, True, below=0.005)
+    table = GroundEstimate(-0.3, 0.1, True, below=0.1)
+    assert check_scale(ground, 1.0, config, 0.1, floor) is ground
+    assert check_scale(ground, 1.0, config, 0.1, table) == ScaleEstimate(1.0, "fallback")
+    assert check_scale(ground, 1.0, config, 0.4, floor) == ScaleEstimate(1.0, "fallback")  # strong
+    assert check_scale(ground, 1.0, config) == ScaleEstimate(1.0, "fallback")  # no weight given
+    off = replace(config, strong_rays_weight=None)
+    assert check_scale(ground, 1.0, off, 0.1, floor) == ScaleEstimate(1.0, "fallback")
+    with pytest.raises(ValueError, match="max_under_ground"):
+        VerifyConfig(max_under_ground=1.5)
+
+
+def test_a_scale_that_puts_the_scene_millimetres_away_is_no_scale() -> None:
+    # Home's frame 141: rays gave 0.005 m per unit, a median confident depth of 5 mm.
+    config = VerifyConfig(min_median_depth_m=0.25)
+    rays = ScaleEstimate(0.005, "fallback")
+    none = plausible_scale(rays, 1.0, config)
+    assert none.source == "none" and np.isnan(none.scale)
+    assert not plausible_scale(ScaleEstimate(0.2, "ground"), 1.0, config).ok
+    good = ScaleEstimate(0.6, "ground")
+    assert plausible_scale(good, 1.0, config) is good  # a wall 0.6 m ahead
+    assert plausible_scale(rays, 1.0, VerifyConfig(min_median_depth_m=None)) is rays
+    assert plausible_scale(rays, float("nan"), config) is rays  # no confident depth to judge by
+    with pytest.raises(ValueError, match="min_median_depth_m"):
+        VerifyConfig(min_median_depth_m=0.0)
 
 
 # Two identical rooms: room B is room A moved 10 m along x (same furniture, same texture). The

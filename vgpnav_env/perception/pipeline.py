@@ -72,6 +72,7 @@ from vgpnav_env.perception.verify import (
     check_scale,
     implausible_mount,
     pair_support,
+    plausible_scale,
     pooled_pairs,
     prior_hypothesis,
     prior_pairs,
@@ -653,10 +654,18 @@ class Perceiver:
             anchor.initialize([(T_wc, None)], self.config.camera_height)
         if scale is None:
             scale, ground = self._ground_scale(loc, T_wc, anchor)
+        found = scale
+        scale = plausible_scale(scale, self._median_depth(loc.backbone), self.config.verify)
         z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")
         pose = _MetricPose(T_wc, scale, ground, z_ground, provisional)
         if not scale.ok:
-            return replace(loc, reason="no ground", detail="no ground peak and no ray-implied scale"), pose
+            detail = (
+                f"{found.source} scale {found.scale:.3g} m per unit puts the median depth nearer "
+                f"than {self.config.verify.min_median_depth_m} m"
+                if found.ok
+                else "no ground peak and no ray-implied scale"
+            )
+            return replace(loc, reason="no ground", detail=detail), pose
         return loc, pose
 
     def _place_single(self, loc: _Localization) -> tuple[NDArray[np.float64], ScaleEstimate, GroundEstimate]:
@@ -688,7 +697,8 @@ class Perceiver:
             # the dominant ground peak counts if it passes the scale check against them.
             ground = self._ground(out, T_wc, None)
         scale = anchor.scale_for(T_wc, ground, fallback_scale=ray_scale)
-        return check_scale(scale, ray_scale, self.config.verify), ground
+        ray_weight = float(loc.motion.weights.sum())
+        return check_scale(scale, ray_scale, self.config.verify, ray_weight, ground), ground
 
     def _calibrated_scale(self, out: BackboneOutput, T_wc: NDArray[np.float64]) -> float | None:
         """Metres per backbone unit that put the ground peak at the calibrated camera height below
@@ -715,6 +725,12 @@ class Perceiver:
             min_confidence=occ.min_confidence,
         )
         return ground_peak(points, T_wc[:3, :3], w, self.config.scale, prior_height_b=prior_height_b)
+
+    def _median_depth(self, out: BackboneOutput) -> float:
+        """Median query depth (backbone units) of the confident pixels (nan when none)."""
+        depth = out.query_depth[(out.query_depth_confidence >= self.config.occupancy.min_confidence)]
+        depth = depth[np.isfinite(depth) & (depth > 0)]
+        return float(np.median(depth)) if len(depth) else float("nan")
 
     def _metric_points(
         self, out: BackboneOutput, T_wc: NDArray[np.float64], scale: float

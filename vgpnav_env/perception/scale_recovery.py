@@ -41,7 +41,9 @@ class ScaleConfig:
     floor over a large table top seen from above: nothing lies below the floor). The search
     runs at bin widths ``levels`` x the base width (depth noise smears the ground peak) and
     keeps the lowest peak found; its height is the weighted median of its window, re-centred
-    with the finest bins. ``height_source="pose"`` uses ``t_wq.z - z_ground`` as the metric
+    with the finest bins. ``below_margin``: points lower than the ground by more than this
+    fraction of its depth under the camera count as under it (:attr:`GroundEstimate.below`; 0.125
+    is 0.15 m at a 1.2 m camera height). ``height_source="pose"`` uses ``t_wq.z - z_ground`` as the metric
     camera height; ``"calibrated"`` uses the calibrated camera height (planar robots).
     """
 
@@ -57,6 +59,7 @@ class ScaleConfig:
     levels: tuple[int, ...] = (1, 2, 4)
     prior_tolerance: float = 0.25
     prior_min_support: float = 0.02
+    below_margin: float = 0.125
     height_source: Literal["pose", "calibrated"] = "pose"
 
     def __post_init__(self) -> None:
@@ -68,6 +71,8 @@ class ScaleConfig:
             raise ValueError("need min_contrast >= 1 and wide_factor >= 1")
         if not self.prior_tolerance > 0 or not 0 <= self.prior_min_support <= 1:
             raise ValueError("need prior_tolerance > 0 and prior_min_support in [0, 1]")
+        if self.below_margin < 0:
+            raise ValueError(f"below_margin must be >= 0, got {self.below_margin}")
         if not self.levels or min(self.levels) < 1:
             raise ValueError(f"levels must be non-empty integers >= 1, got {self.levels}")
         if self.height_source not in ("pose", "calibrated"):
@@ -76,11 +81,16 @@ class ScaleConfig:
 
 @dataclass(frozen=True)
 class GroundEstimate:
-    """Ground height below the camera in backbone units (< 0), its weight fraction, and success."""
+    """Ground height below the camera in backbone units (< 0), its weight fraction, and success.
+
+    ``below``: the weight fraction of the points more than ``ScaleConfig.below_margin`` x the
+    ground's depth under it (0 when not found); nothing lies under a true floor.
+    """
 
     height_b: float
     support: float
     found: bool
+    below: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -156,7 +166,8 @@ def ground_peak(
         if near.sum() < config.min_points:
             break
         height = _weighted_median(hb[near], wb[near])
-    return GroundEstimate(height, support, True)
+    under = float(wb[hb < height * (1.0 + config.below_margin)].sum()) / total
+    return GroundEstimate(height, support, True, under)
 
 
 def _lowest_peak(

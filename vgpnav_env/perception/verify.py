@@ -44,7 +44,7 @@ from vgpnav_env.perception.motion_averaging import (
     pair_centre,
 )
 from vgpnav_env.perception.retrieval import pose_guided_references
-from vgpnav_env.perception.scale_recovery import GroundAnchor, ScaleEstimate
+from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,16 @@ class VerifyConfig:
     searched within ``ScaleConfig.prior_tolerance`` of the ray-implied height (such a peak always
     passes the check); only when nothing is there does the dominant peak compete, and the check
     decides (on ``home`` this fixed a 25 % ray-scale error and kept a table top at 2.2x out).
+    The rays decide only when they are strong (total motion-averaging weight of at least
+    ``strong_rays_weight``) or the ground peak has more than ``max_under_ground`` of the points
+    under it (:attr:`~vgpnav_env.perception.scale_recovery.GroundEstimate.below`: a table top
+    leaves the floor below it); else the ground stands. Two nearly parallel rays of weight < 0.1
+    placed home's frames 21 and 79 with half the true scale (ground peak 1.1x right, 0.1 % and
+    0.4 % of the points under it); the rays that were right against a table top had weight >= 0.38
+    (home 66, 88; hospital 289, whose bed top has 1.6 % under it) or >= 9.7 % of the points under
+    the top. ``min_median_depth_m``: a scale that puts the median confident query depth nearer
+    than this (metres) is no scale (home's frame 141: rays of weight 0.29 gave 0.005 m per unit,
+    a median depth of 5 mm; true medians are >= 0.54 m on home and hospital).
     ``second_round_below_inliers``: when motion averaging keeps fewer consistent references than
     this (a failed pose counts 0), a second round verifies references chosen by pose: up to
     ``second_round_hypotheses`` distinct pose hypotheses (the averaged pose, the most confident
@@ -119,6 +129,9 @@ class VerifyConfig:
 
     pose_height_tolerance: float | None = 0.3
     scale_check_ratio: float | None = 1.5
+    strong_rays_weight: float | None = 0.2
+    max_under_ground: float = 0.03
+    min_median_depth_m: float | None = 0.25
     second_round_below_inliers: int | None = 3
     second_round_hypotheses: int = 2
     second_round_radius: float = 1.5
@@ -145,6 +158,12 @@ class VerifyConfig:
     def __post_init__(self) -> None:
         if self.scale_check_ratio is not None and self.scale_check_ratio <= 1:
             raise ValueError(f"scale_check_ratio must be > 1 or None, got {self.scale_check_ratio}")
+        if self.strong_rays_weight is not None and self.strong_rays_weight <= 0:
+            raise ValueError(f"strong_rays_weight must be > 0 or None, got {self.strong_rays_weight}")
+        if not 0 <= self.max_under_ground <= 1:
+            raise ValueError(f"max_under_ground must be in [0, 1], got {self.max_under_ground}")
+        if self.min_median_depth_m is not None and self.min_median_depth_m <= 0:
+            raise ValueError(f"min_median_depth_m must be > 0 m or None, got {self.min_median_depth_m}")
         if self.pose_height_tolerance is not None and self.pose_height_tolerance <= 0:
             raise ValueError(f"pose_height_tolerance must be > 0 m or None, got {self.pose_height_tolerance}")
         if self.second_round_hypotheses < 1 or self.second_round_radius <= 0:
@@ -672,15 +691,37 @@ def check_height(
     return replace(motion, ok=False, reason=f"camera height off by {off:+.2f} m")
 
 
-def check_scale(estimate: ScaleEstimate, ray_scale: float, config: VerifyConfig) -> ScaleEstimate:
+def check_scale(
+    estimate: ScaleEstimate,
+    ray_scale: float,
+    config: VerifyConfig,
+    ray_weight: float = float("inf"),
+    ground: GroundEstimate | None = None,
+) -> ScaleEstimate:
     """A ground scale more than ``scale_check_ratio`` away from the ray-implied ``ray_scale``
-    (metres per backbone unit) is replaced by ``ray_scale`` (source "fallback")."""
+    (metres per backbone unit) is replaced by ``ray_scale`` (source "fallback"), unless the rays
+    are weak (total weight ``ray_weight`` < ``strong_rays_weight``) and the ``ground`` peak has at
+    most ``max_under_ground`` of the points under it (see :class:`VerifyConfig`)."""
     r = config.scale_check_ratio
     if r is None or estimate.source != "ground" or not (np.isfinite(ray_scale) and ray_scale > 0):
         return estimate
     if 1.0 / r <= estimate.scale / ray_scale <= r:
         return estimate
+    weak = config.strong_rays_weight is not None and ray_weight < config.strong_rays_weight
+    if weak and ground is not None and ground.found and ground.below <= config.max_under_ground:
+        return estimate
     return ScaleEstimate(float(ray_scale), "fallback")
+
+
+def plausible_scale(estimate: ScaleEstimate, median_depth_b: float, config: VerifyConfig) -> ScaleEstimate:
+    """``estimate``, or no scale (source "none") when it puts the median confident query depth
+    ``median_depth_b`` (backbone units) nearer than ``config.min_median_depth_m``."""
+    floor = config.min_median_depth_m
+    if floor is None or not estimate.ok or not np.isfinite(median_depth_b):
+        return estimate
+    if estimate.scale * median_depth_b >= floor:
+        return estimate
+    return ScaleEstimate(float("nan"), "none")
 
 
 def pooled_pairs(
