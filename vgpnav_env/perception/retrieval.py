@@ -419,15 +419,14 @@ class RetrievalConfig:
     ``rerank`` > 0: the ``rerank`` most similar database images are re-scored by
     :func:`geometric_rerank` before the selection (``rerank_keypoints`` query keypoints,
     candidates with fewer than ``rerank_min_inliers`` verified matches drop to the end); 0 = off.
-    Measured on all query frames of home / hospital (classical, k = 10, Alg. 1), off -> 40:
-    retrieval recall 0.946 -> 0.940 / 0.876 -> 0.912, gross errors 9 -> 5 / 26 -> 20, lost
-    19.6 -> 20.1 % / 33.2 -> 34.4 %, recall at 5 cm / 5 deg 0.728 -> 0.755 / 0.589 -> 0.589,
-    CPU s per frame 0.36 -> 0.48 / 0.43 -> 0.56; on the tiny test room (one wall texture) it
-    chose aliased walls and lost more frames. With the verification of main at 5bc1b49, 40 on all
-    queries of home:3 / hospital:1 / hospital:2: gross 4 -> 3 / 9 -> 11 / 11 -> 18, lost 16.4 ->
-    21.4 / 20.8 -> 23.9 / 15.2 -> 20.6 %, recall at 5 cm / 5 deg 0.786 -> 0.750 / 0.745 -> 0.702 /
-    0.808 -> 0.736, 0.60-0.62 CPU s per frame (hospital gross 13 -> 7). Not better everywhere, so
-    off by default.
+    Measured with the verification of main at 738a134 on all queries of the 8 scenes of
+    ``benchmarks/localization_scenes.md`` (classical, k = 10, Alg. 1), off -> 40: gross poses fall
+    on the procedural hospitals (hospital:1 / :2 / :3: 3 -> 1, 5 -> 2, 3 -> 2), stay on hospital
+    (4) and rise on home:3 (1 -> 2), but lost frames rise on every hospital and home:3 (hospital:1
+    27.3 -> 38.8 %, hospital:3 37.1 -> 49.7 %) and recall at 5 cm / 5 deg falls (0.70 -> 0.59,
+    0.62 -> 0.48): the candidates with most verified matches are as often an identical ward's,
+    whose views then make right poses ``ambiguous``. It costs 0.25-0.29 CPU s per frame (40
+    candidates, 600 keypoints). A trade, not a gain, so off by default.
     """
 
     k: int = 10
