@@ -394,6 +394,30 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
         PoseGate(T, 0.5, 1.0)
 
 
+def test_a_pose_only_the_prior_verifies_is_marked_prior_placed(database: Database, query) -> None:
+    run, depth = query
+    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(3)]
+    T = run.poses[2]
+    prior = PoseGate(base_pose(T), 0.3, np.radians(10.0))
+
+    def perceiver(verify: VerifyConfig) -> Perceiver:
+        config = PerceptionConfig(camera_height=QUERY_HEIGHT, verify=verify)
+        p = Perceiver(database, make_backbone("simulated", seed=5), config=config)
+        p.initialize(run.images[:1], priv[:1])
+        return p
+
+    # The images confirm the pose alone: not prior-placed.
+    confirmed = perceiver(VerifyConfig()).perceive(run.images[2], priv[2], prior=prior)
+    assert confirmed.localized and not confirmed.prior_placed
+    # A support floor no pose reaches: lost without the prior, localized but prior-placed with it
+    # (the prior waives the floor), so a map would not take it.
+    strict = replace(VerifyConfig(), min_total_support=10**6)
+    alone = perceiver(strict).perceive(run.images[2], priv[2])
+    assert alone.status == "lost" and alone.verdict.check == "support"
+    placed = perceiver(strict).perceive(run.images[2], priv[2], prior=prior)
+    assert placed.localized and placed.prior_placed and errors(placed.T_wc, T)[0] < 0.01
+
+
 def test_a_verified_pose_outside_the_prior_is_inconsistent_but_still_measured(
     database: Database, query
 ) -> None:

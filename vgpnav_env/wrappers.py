@@ -8,7 +8,8 @@ state. ``perception_mode`` (:data:`~vgpnav_env.perception.pipeline.PERCEPTION_MO
 - ``"temporal"`` (default): :class:`~vgpnav_env.perception.state.EKFState` fuses action odometry
   and the perceived poses (Mahalanobis-gated, kidnapping detected); while it is certain, the
   perceiver tracks (references around the predicted camera pose, global retrieval when that
-  fails); a frame is fused into the map only when the EKF accepts its pose.
+  fails); a frame is fused into the map only when the EKF accepts its pose and the images confirm
+  it without the estimate's prior (``PerceptionResult.prior_placed``).
 - ``"paper"``: every frame perceived on its own (global retrieval) and fused when it localizes;
   :class:`~vgpnav_env.perception.state.OdometryState` carries the pose between fixes (dead
   reckoning by the robot's motion model, blocked steps seen in the pixels, the odometry gate
@@ -334,8 +335,9 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         measured = result.measurement
         self.pose_state.correct(None if measured is None else base_pose(measured), result.confidence)
         localized = self.pose_state.localized
-        if localized and not first and self.perception_mode != "paper":
-            self.perceiver.fuse(result)  # the map takes only frames whose pose the estimator trusts
+        if localized and not first and self.perception_mode != "paper" and not result.prior_placed:
+            # the map takes only frames whose pose the estimator trusts and the images confirm alone
+            self.perceiver.fuse(result)
         estimate = self.pose_state.estimate
         self.last_result = result
         occupancy = self.perceiver.map
