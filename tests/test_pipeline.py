@@ -364,13 +364,22 @@ def test_second_round_tries_the_next_most_similar_images_when_no_pair_passed(
     assert dt < 0.02 and dr < 0.1
 
 
-def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -> None:
+def _simulated_perceiver(
+    database: Database, query, verify: VerifyConfig | None = None
+) -> tuple[Perceiver, list[Privileged]]:
+    """A simulated-backbone perceiver anchored on the query run's first frame, and every frame's
+    privileged data."""
     run, depth = query
-    perceiver = Perceiver(
-        database, make_backbone("simulated", seed=5), config=PerceptionConfig(camera_height=QUERY_HEIGHT)
-    )
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT, verify=verify or VerifyConfig())
+    perceiver = Perceiver(database, make_backbone("simulated", seed=5), config=config)
     priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
     perceiver.initialize(run.images[:1], priv[:1])
+    return perceiver, priv
+
+
+def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -> None:
+    run, _ = query
+    perceiver, priv = _simulated_perceiver(database, query)
     T = run.poses[2]
     far = T.copy()
     far[0, 3] += 1.0  # expected 1 m away: the (exact) pose is outside a 0.5 m gate
@@ -395,38 +404,28 @@ def test_pose_gate_rejects_a_jump_and_fuses_nothing(database: Database, query) -
 
 
 def test_a_pose_only_the_prior_verifies_is_marked_prior_placed(database: Database, query) -> None:
-    run, depth = query
-    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(3)]
+    run, _ = query
     T = run.poses[2]
     prior = PoseGate(base_pose(T), 0.3, np.radians(10.0))
 
-    def perceiver(verify: VerifyConfig) -> Perceiver:
-        config = PerceptionConfig(camera_height=QUERY_HEIGHT, verify=verify)
-        p = Perceiver(database, make_backbone("simulated", seed=5), config=config)
-        p.initialize(run.images[:1], priv[:1])
-        return p
-
+    perceiver, priv = _simulated_perceiver(database, query)
     # The images confirm the pose alone: not prior-placed.
-    confirmed = perceiver(VerifyConfig()).perceive(run.images[2], priv[2], prior=prior)
+    confirmed = perceiver.perceive(run.images[2], priv[2], prior=prior)
     assert confirmed.localized and not confirmed.prior_placed
     # A support floor no pose reaches: lost without the prior, localized but prior-placed with it
     # (the prior waives the floor), so a map would not take it.
     strict = replace(VerifyConfig(), min_total_support=10**6)
-    alone = perceiver(strict).perceive(run.images[2], priv[2])
+    alone = _simulated_perceiver(database, query, strict)[0].perceive(run.images[2], priv[2])
     assert alone.status == "lost" and alone.verdict.check == "support"
-    placed = perceiver(strict).perceive(run.images[2], priv[2], prior=prior)
+    placed = _simulated_perceiver(database, query, strict)[0].perceive(run.images[2], priv[2], prior=prior)
     assert placed.localized and placed.prior_placed and errors(placed.T_wc, T)[0] < 0.01
 
 
 def test_a_verified_pose_outside_the_prior_is_inconsistent_but_still_measured(
     database: Database, query
 ) -> None:
-    run, depth = query
-    perceiver = Perceiver(
-        database, make_backbone("simulated", seed=5), config=PerceptionConfig(camera_height=QUERY_HEIGHT)
-    )
-    priv = [Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i]) for i in range(len(run))]
-    perceiver.initialize(run.images[:1], priv[:1])
+    run, _ = query
+    perceiver, priv = _simulated_perceiver(database, query)
     T = run.poses[2]
     before = perceiver.map.logodds.copy()
     # The state estimate expects the robot 1 m away: the (right) pose is verified but contradicts it.
