@@ -176,6 +176,8 @@ def test_a_confident_prior_picks_the_room_the_robot_is_in_never_the_other() -> N
     prior = PoseGate(expected, 0.25, np.radians(9.0))
     right = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=prior)
     assert right.ok and right.rival_strength == 0 and right.support[:3].all(), right.detail
+    # ...by the prior alone: without it room B makes the same pose ambiguous.
+    assert right.by_prior and verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b]).reason == "ambiguous"
     # Room B's pose lies outside the prior: verified as without one, still ambiguous (never room B).
     wrong = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a], prior=prior)
     assert not wrong.ok and wrong.reason == "ambiguous"
@@ -250,7 +252,10 @@ def test_a_pose_inside_the_prior_needs_supporting_references_not_the_total_floor
     assert alone.reason == "unverified" and alone.check == "support" and "only 80" in alone.detail
     prior = PoseGate(base_pose(T_a), 0.25, np.radians(9.0))
     placed = verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=prior)
-    assert placed.ok and placed.strength >= 75 and "inside the prior" in placed.detail
+    assert placed.ok and placed.strength >= 75 and "inside the prior" in placed.detail and placed.by_prior
+    # All references of the room: the images confirm the pose alone, the prior adds nothing.
+    full = verify_pose(T_a, T_wi, out, CAMERA, config, prior=prior)
+    assert full.ok and not full.by_prior and verify_pose(T_a, T_wi, out, CAMERA, config).ok
     # One of them alone (under single_reference_support), or the camera rolled 3 deg (right poses:
     # < 0.5 deg), or outside the prior: unverified.
     one = replace(two, T_qi=two.T_qi[:1], confidence=two.confidence[:1], n_matches=two.n_matches[:1],

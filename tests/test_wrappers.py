@@ -306,6 +306,25 @@ def test_temporal_mode_tracks_a_known_trajectory(database):
     env.close()
 
 
+def test_temporal_mode_maps_only_poses_the_images_confirm_without_the_prior(database):
+    env = temporal_env(database, FlakyBackbone())
+    env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    confirmed = env.perceiver.config
+    # A support floor no pose reaches: only the EKF's prior (which waives it) verifies the poses.
+    env.perceiver.config = replace(confirmed, verify=replace(confirmed.verify, min_total_support=10**6))
+    before = env.fused_map.logodds.copy()
+    for action in TRAJECTORY[:3]:
+        _, _, _, _, info = env.step(action)
+        result = env.last_result
+        assert result.localized and result.prior_placed and info["perception"]["fix"] == "accepted"
+        assert info["localization_error_m"] < 0.05  # the estimate takes them in...
+    np.testing.assert_array_equal(env.fused_map.logodds, before)  # ...the map does not
+    env.perceiver.config = confirmed
+    env.step(TRAJECTORY[3])
+    assert not env.last_result.prior_placed and not np.array_equal(env.fused_map.logodds, before)
+    env.close()
+
+
 def test_temporal_mode_bridges_a_textureless_stretch(database):
     """Eight frames without a usable match (a textureless stretch) are carried by the EKF's action
     odometry within 5 cm; the first textured frame after them is tracked and accepted."""

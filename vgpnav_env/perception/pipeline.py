@@ -177,9 +177,6 @@ class PerceptionResult:
     verified) and ``confidence`` its :attr:`~vgpnav_env.perception.verify.Verdict.confidence`
     (0 when lost): how much to trust the pose. ``source``: where the references came from,
     ``tracking`` (around the caller's predicted pose) or ``global`` (retrieval over the database).
-    ``prior_placed``: the pose was verified only thanks to the caller's ``prior`` (the images alone
-    would not confirm it): a state estimator may take it in, a map should not (such poses skip the
-    plane check and may sit a decimetre off: fused, they closed a doorway on home seed 9).
     """
 
     status: str
@@ -201,11 +198,18 @@ class PerceptionResult:
     verdict: Verdict | None = None
     confidence: float = 0.0
     source: str = "global"
-    prior_placed: bool = False
 
     @property
     def localized(self) -> bool:
         return self.status == "localized"
+
+    @property
+    def prior_placed(self) -> bool:
+        """Localized only thanks to the caller's ``prior`` (:attr:`Verdict.by_prior`: the images
+        alone would not confirm the pose): a state estimator may take it in, a map should not (such
+        poses skip the plane check and may sit a decimetre off: fused, they closed a doorway on home
+        seed 9)."""
+        return self.localized and self.verdict is not None and self.verdict.by_prior
 
     @property
     def measurement(self) -> NDArray[np.float64] | None:
@@ -432,10 +436,6 @@ class Perceiver:
                 loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
             )
             return lost, None
-        placed = False
-        if verdict.ok and prior is not None:
-            with clock.stage("verification"):  # would the images alone confirm it?
-                placed = not self._verify(loc, pose)[1].ok
         if verdict.ok and pose.anchor is not None and not self.anchor.initialized:
             self.anchor = pose.anchor  # the first verified pose anchors the ground
         if not verdict.ok:
@@ -468,7 +468,6 @@ class Perceiver:
             verdict=verdict,
             confidence=verdict.confidence,
             source=loc.source,
-            prior_placed=placed,
         )
         return result, points_w
 

@@ -396,7 +396,10 @@ class Verdict:
     and ``rival`` its pose. ``score`` in [0, 1):
     ``strength / (strength + rival_strength + confidence_matches)`` -- more independent support,
     higher; a rival, lower; ``confidence``: the score of an accepted pose, else 0. ``check``: the
-    :data:`VERIFY_CHECKS` name of the check that rejected the pose ("" when ok).
+    :data:`VERIFY_CHECKS` name of the check that rejected the pose ("" when ok). ``by_prior``: ok
+    only inside a state estimate's prior (:func:`verify_pose`'s ``prior``): the images alone, with
+    every rival and check, would not confirm the pose. With a prior, ``rival_strength`` / ``rival``
+    are those of the rivals inside it.
     """
 
     ok: bool
@@ -408,6 +411,7 @@ class Verdict:
     rival_strength: int = 0
     rival: NDArray[np.float64] | None = None
     check: str = ""
+    by_prior: bool = False
 
     @property
     def n_supporting(self) -> int:
@@ -474,11 +478,12 @@ def verify_pose(
             return config.min_off_plane_matches if flat is None else 0
         return int(reference_support(T, T_wi, flat, camera, config)[among].max())
 
-    rival_strength, rival = 0, None
+    rival_strength, rival = 0, None  # the strongest distinct rival
+    inside_strength, inside = 0, None  # the strongest inside the prior (a placed pose's rival)
     claim = config.rival_claim_ratio
     placed = prior is not None and prior.admits(T_wq) and abs(_roll_deg(T_wq)) <= config.prior_max_roll_deg
     for T in rivals:
-        if implausible_mount(T, camera_z, config) or (placed and not prior.admits(T)):
+        if implausible_mount(T, camera_z, config):
             continue
         distinct = np.linalg.norm(T[:3, 3] - T_wq[:3, 3]) > config.rival_distance or rotation_angle(
             T[:3, :3], T_wq[:3, :3]
@@ -495,36 +500,43 @@ def verify_pose(
         value = _strongest(theirs[theirs_alone], config.ambiguity_references)
         if value > rival_strength:
             rival_strength, rival = value, T
-    score = strength / (strength + rival_strength + config.confidence_matches)
+        if placed and prior.admits(T) and value > inside_strength:
+            inside_strength, inside = value, T
     n = int(explained.sum())
 
-    def verdict(check: str, detail: str) -> Verdict:
+    def verdict(check: str, detail: str, by_prior: bool = False) -> Verdict:
         reason = "ambiguous" if check == "ambiguity" else "unverified" if check else ""
-        return Verdict(not reason, reason, detail, score, support, strength, rival_strength, rival, check)
+        strongest, its = (inside_strength, inside) if placed else (rival_strength, rival)
+        score = strength / (strength + strongest + config.confidence_matches)
+        return Verdict(not reason, reason, detail, score, support, strength, strongest, its, check, by_prior)
 
     mount = implausible_mount(T_wq, camera_z, config)
     if mount:
         return verdict("mount", mount)
-    if placed:
-        return _placed_verdict(verdict, support, rival, rival_strength, T_wq, config)
-    if not _enough_references(support[explained], config):
-        return verdict("support", f"{n} reference(s) support the pose (support {raw.tolist()})")
-    if config.min_total_support is not None and strength < config.min_total_support:
-        return verdict("support", f"{n} references explain only {strength} matches")
-    structure = off_plane(T_wq, explained)
-    if structure < config.min_off_plane_matches:
-        return verdict("plane", f"support only on the pairs' dominant planes ({structure} matches off them)")
-    if rival_strength >= config.ambiguity_ratio * _strongest(support, config.ambiguity_references):
-        return verdict(
-            "ambiguity",
-            f"a pose {np.linalg.norm(rival[:3, 3] - T_wq[:3, 3]):.1f} m away has support {rival_strength} "
-            f"against {strength}",
-        )
-    if config.min_explained_confidence is not None:
-        share = explained_confidence(T_wq, T_wi, out, camera, config, raw, own)
-        if share < config.min_explained_confidence:
-            return verdict("share", f"the pose explains {share:.0%} of the pairs' confidence")
-    return verdict("", f"{n} references, support {strength}, rival {rival_strength}")
+
+    def alone() -> tuple[str, str]:
+        """The check the images alone fail (all rivals count, nothing waived; "" when none) and why."""
+        if not _enough_references(support[explained], config):
+            return "support", f"{n} reference(s) support the pose (support {raw.tolist()})"
+        if config.min_total_support is not None and strength < config.min_total_support:
+            return "support", f"{n} references explain only {strength} matches"
+        structure = off_plane(T_wq, explained)
+        if structure < config.min_off_plane_matches:
+            return "plane", f"support only on the pairs' dominant planes ({structure} matches off them)"
+        if rival_strength >= config.ambiguity_ratio * _strongest(support, config.ambiguity_references):
+            distance = np.linalg.norm(rival[:3, 3] - T_wq[:3, 3])
+            detail = f"a pose {distance:.1f} m away has support {rival_strength} against {strength}"
+            return "ambiguity", detail
+        if config.min_explained_confidence is not None:
+            share = explained_confidence(T_wq, T_wi, out, camera, config, raw, own)
+            if share < config.min_explained_confidence:
+                return "share", f"the pose explains {share:.0%} of the pairs' confidence"
+        return "", f"{n} references, support {strength}, rival {rival_strength}"
+
+    if not placed:
+        return verdict(*alone())
+    inside_prior = _placed_verdict(verdict, support, inside, inside_strength, T_wq, config)
+    return replace(inside_prior, by_prior=bool(alone()[0])) if inside_prior.ok else inside_prior
 
 
 def prior_hypothesis(
