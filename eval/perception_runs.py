@@ -234,7 +234,9 @@ class FrameRecord:
     only: ``fix``, what the EKF did with the frame's pose
     (:data:`~vgpnav_env.perception.state.FIX_OUTCOMES`), and ``estimate_error_m``, the horizontal
     error of the EKF's estimate after the frame (nan before its first estimate), and
-    ``visual_odometry``, whether visual odometry refined the motion into the frame.
+    ``visual_odometry``, whether visual odometry refined the motion into the frame;
+    ``prior_placed``: localized only thanks to the estimate's prior
+    (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.prior_placed`).
     """
 
     frame: int
@@ -262,6 +264,7 @@ class FrameRecord:
     estimate_error_m: float = float("nan")
     visual_odometry: bool = False
     gate: str = ""
+    prior_placed: bool = False
 
     @property
     def gross(self) -> bool:
@@ -634,6 +637,7 @@ def _record(
         confidence=result.confidence,
         candidate_confidence=result.verdict.score if result.verdict is not None else float("nan"),
         gate=_gate(result),
+        prior_placed=result.prior_placed,
     )
 
 
@@ -747,7 +751,8 @@ def temporal_metrics(records: list[FrameRecord]) -> dict[str, Any]:
     references came from tracking), ``no_estimate_rate`` (frames before the first estimate) and,
     over the frames with an estimate, its horizontal error: ``estimate_mean_m``,
     ``estimate_median_m``, ``estimate_p95_m`` and ``estimate_gross_rate`` (more than
-    :data:`~vgpnav_env.measures.GROSS_POSE_ERROR_M` off)."""
+    :data:`~vgpnav_env.measures.GROSS_POSE_ERROR_M` off); ``n_prior_placed`` / ``prior_placed_rate``:
+    the frames localized only thanks to the estimate's prior (:attr:`FrameRecord.prior_placed`)."""
     from vgpnav_env.measures import GROSS_POSE_ERROR_M
 
     if not records or not records[0].fix:
@@ -760,6 +765,8 @@ def temporal_metrics(records: list[FrameRecord]) -> dict[str, Any]:
     e = errors[have]
     return {
         "fixes": dict(sorted(fixes.items())),
+        "n_prior_placed": sum(r.prior_placed for r in records),
+        "prior_placed_rate": float(np.mean([r.prior_placed for r in records])),
         "tracked_rate": float(np.mean([r.source == "tracking" for r in records])),
         "visual_odometry_rate": float(np.mean([r.visual_odometry for r in records])),
         "no_estimate_rate": float(1.0 - have.mean()),

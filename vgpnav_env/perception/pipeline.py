@@ -76,7 +76,9 @@ from vgpnav_env.perception.verify import (
     pooled_pairs,
     prior_hypothesis,
     prior_pairs,
+    prior_poses,
     reference_support,
+    refine_pose,
     rival_pairs,
     rival_poses,
     round_rank,
@@ -377,6 +379,11 @@ class Perceiver:
         """
         clock = _Clock()
         result, points_w = self._attempt(rgb, privileged, gate, clock, predicted, prior)
+        if not result.localized and prior is not None and result.reason != "inconsistent motion":
+            with clock.stage("verification"):
+                placed = self._place_on_prior(result, prior, gate)
+            if placed is not None:
+                result, points_w = placed
         if result.localized and fuse:
             with clock.stage("occupancy"):
                 result = replace(result, classes=self._fuse(result, points_w))
@@ -629,6 +636,80 @@ class Perceiver:
         return replace(
             loc, motion=motion, reason="", detail=f"pairs agreeing with the prior after: {loc.detail}"
         )
+
+    def _place_on_prior(
+        self, lost: PerceptionResult, prior: PoseGate, gate: PoseGate | None
+    ) -> tuple[PerceptionResult, NDArray[np.float64]] | None:
+        """A ``lost`` frame placed inside the ``prior`` (:func:`prior_poses`) when :func:`verify_pose`
+        with the prior confirms that pose with at least ``min_supporting_references`` (and 2)
+        references: the strongest such pose, localized and marked
+        :attr:`PerceptionResult.prior_placed`, and its metric points; else None. Its scale is the
+        ground's, checked against the supporting pairs' (their distance to the pose over their
+        backbone translation, median)."""
+        out, refs = lost.backbone, lost.references
+        if out is None or not self.anchor.initialized or not (out.confidence > 0).any():
+            return None
+        cfg, v = self.config, self.config.verify
+        T_wi = self.database.poses[refs]
+        camera_z = float(self.anchor.z_ground) + cfg.camera_height
+        hypotheses = prior_poses(T_wi, out, self.camera, prior, camera_z, v)
+        if not hypotheses:
+            return None
+        uses_own = v.rival_claim_ratio is not None or v.min_explained_confidence is not None
+        own = pair_support(T_wi, out, self.camera, v) if uses_own else None
+        baseline = np.linalg.norm(out.T_iq[:, :3, 3], axis=1)
+        best = None
+        if out.matches is not None:
+            refined = [
+                refine_pose(T, T_wi, out.matches, self.camera, v, max_shift=prior.max_distance)
+                for T in hypotheses
+            ]
+            hypotheses += [T for T in refined if prior.admits(T)]
+        for T in hypotheses:
+            distance = np.linalg.norm(T_wi[:, :3, 3] - T[:3, 3], axis=1)
+            support = reference_support(T, T_wi, out, self.camera, v)
+            usable = (
+                (support >= v.min_support_matches) & out.scale_valid & (baseline > 0) & (out.confidence > 0)
+            )
+            if not usable.any():
+                continue
+            pair_scale = float(np.median(distance[usable] / baseline[usable]))
+            support = rival_pairs(support, T_wi, out, self.camera, v, own)
+            rivals = rival_poses(T, T_wi, out, support, pair_scale, cfg.averaging)
+            verdict = verify_pose(
+                T, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own, prior=prior
+            )
+            enough = verdict.n_supporting >= max(2, v.min_supporting_references)
+            if verdict.ok and enough and (best is None or verdict.strength > best[3].strength):
+                best = T, pair_scale, float(out.confidence[usable].sum()), verdict
+        if best is None:
+            return None
+        T, pair_scale, weight, verdict = best
+        if gate is not None and not gate.admits(T):
+            return None
+        ground = self._ground(out, T, self.anchor.expected_height_b(T, pair_scale))
+        scale = self.anchor.scale_for(T, ground, fallback_scale=pair_scale)
+        scale = check_scale(scale, pair_scale, v, weight, ground)
+        scale = plausible_scale(scale, self._median_depth(out), v)
+        if not scale.ok:
+            return None
+        points_w = self._metric_points(out, T, scale.scale)
+        detail = f"placed inside the prior after {lost.reason}: {lost.detail}"
+        result = replace(
+            lost,
+            status="localized",
+            reason="",
+            T_wc=T,
+            points_w=points_w.astype(np.float32),
+            scale=scale.scale,
+            scale_source=scale.source,
+            z_ground=float(self.anchor.z_ground),
+            ground=ground,
+            detail=detail,
+            verdict=replace(verdict, by_prior=True),
+            confidence=verdict.confidence,
+        )
+        return result, points_w
 
     def _single_pair_fallback(self, loc: _Localization, clock: _Clock) -> _Localization:
         """``loc`` placed by its most confident pair (:func:`single_pair_fallback`), else unchanged."""
