@@ -16,6 +16,7 @@ import vgpnav_env.perception.database as database_module
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
+from vgpnav_env.perception.motion_averaging import MotionAveragingConfig
 from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, TIMING_KEYS, Perceiver, PerceptionConfig, perceive
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex, select_references
@@ -419,6 +420,44 @@ def test_a_pose_only_the_prior_verifies_is_marked_prior_placed(database: Databas
     assert alone.status == "lost" and alone.verdict.check == "support"
     placed = _simulated_perceiver(database, query, strict)[0].perceive(run.images[2], priv[2], prior=prior)
     assert placed.localized and placed.prior_placed and errors(placed.T_wc, T)[0] < 0.01
+
+
+def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_only_if_verified(
+    database: Database, query
+) -> None:
+    """Temporal mode: a frame lost for "no consensus" (here every rotation consensus fails) while the
+    EKF's prior is certain gets the pairs' rotations at the position inside the prior whose
+    epipolar geometry the references' matches fit (:func:`prior_poses`, :func:`refine_pose`):
+    localized, marked prior_placed; never without the prior, nor where a prior 1 m off says."""
+    run, depth = query
+    i, T = 2, run.poses[2]
+    priv = [Privileged(run.poses[j], np.zeros((0, 4, 4)), depth[j]) for j in (0, i)]
+    classical = make_backbone("classical", database=database)
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    anchored = Perceiver(database, classical, config=config)
+    anchored.initialize(run.images[0], priv[0])
+    failing = replace(
+        config,
+        averaging=MotionAveragingConfig(min_consensus=100),
+        verify=VerifyConfig(single_fallback_confidence=None),
+    )
+    perceiver = Perceiver(database, classical, config=failing)
+    perceiver.reset(anchored.anchor)
+    alone = perceiver.perceive(run.images[i], priv[1])
+    assert alone.status == "lost" and alone.reason == "no consensus"
+    prior = PoseGate(base_pose(T) + [0.06, -0.04, np.radians(3.0)], 0.25, np.radians(9.0))
+    placed = perceiver.perceive(run.images[i], priv[1], prior=prior)
+    assert placed.localized and placed.prior_placed and "placed inside the prior" in placed.detail
+    assert placed.verdict.n_supporting >= 2
+    dt, dr = errors(placed.T_wc, T)
+    assert dt < 0.05 and dr < 1.0, (dt, dr)
+    away = PoseGate(base_pose(T) + [1.0, 0.0, 0.0], 0.25, np.radians(9.0))
+    lost = perceiver.perceive(run.images[i], priv[1], prior=away)
+    assert lost.status == "lost" and lost.reason == "no consensus" and not lost.prior_placed
+    # The simulated backbone gives no matches: nothing to place a pose by.
+    simulated = Perceiver(database, make_backbone("simulated", seed=5), config=failing)
+    simulated.reset(anchored.anchor)
+    assert simulated.perceive(run.images[i], priv[1], prior=prior).status == "lost"
 
 
 def test_a_verified_pose_outside_the_prior_is_inconsistent_but_still_measured(

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
@@ -24,6 +25,8 @@ from vgpnav_env.perception.verify import (
     pooled_pairs,
     prior_hypothesis,
     prior_pairs,
+    prior_poses,
+    refine_pose,
     rival_pairs,
     verify_pose,
 )
@@ -560,3 +563,60 @@ def test_a_pose_two_references_barely_explain_is_rejected() -> None:
     assert verify_pose(T_a, T_wi, full, CAMERA, VerifyConfig(min_total_support=140)).ok
     with pytest.raises(ValueError, match="min_total_support"):
         VerifyConfig(min_total_support=0)
+
+
+def _errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) between two camera poses."""
+    R = T[:3, :3].T @ T_true[:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+    return float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])), float(angle)
+
+
+def test_refine_pose_moves_a_nearby_pose_onto_the_one_the_matches_fit() -> None:
+    T_a, _, T_wi, out = _aliased_frame("A")
+    config = VerifyConfig()
+    # 8 cm and 1.2 deg of yaw off (inside the 1.5 deg bound): each reference explains fewer matches.
+    start = camera_pose(T_a[:3, 3] + [0.06, -0.05, 0.02], np.deg2rad(46.2), np.deg2rad(20.0))
+    before = epipolar_support(start, T_wi, out.matches, CAMERA, config.max_epipolar_error_px)
+    refined = refine_pose(start, T_wi, out.matches, CAMERA, config, max_shift=0.25)
+    after = epipolar_support(refined, T_wi, out.matches, CAMERA, config.max_epipolar_error_px)
+    dt, dr = _errors(refined, T_a)
+    assert dt < 0.005 and dr < 0.05, (dt, dr)
+    assert (after >= 0.95 * out.n_matches).all() and (before < after).all(), (before, after)
+    # The refinement stays within its bounds: 0.3 m away it moves at most max_shift per axis.
+    far = start.copy()
+    far[0, 3] += 0.3
+    bounded = refine_pose(far, T_wi, out.matches, CAMERA, config, max_shift=0.1)
+    assert np.abs(bounded[:2, 3] - far[:2, 3]).max() <= 0.1 + 1e-9
+    assert refine_pose(start, T_wi, [m[:1] for m in out.matches], CAMERA, config, max_shift=0.1) is start
+
+
+def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> None:
+    """Short baselines: the pairs' rotations are right but their translation directions 60 deg off
+    (home's frame 32: rotation 0.1 deg, direction 70 deg), so no two rays meet at the query. Inside a
+    prior 5 cm / 2 deg from the truth, the pairs' rotations at the position the matches fit best
+    are the query's pose, confirmed by all three references; a prior in the other room gives poses
+    no reference confirms."""
+    T_a, T_b, T_wi, out = _aliased_frame("A")
+    config = VerifyConfig()
+    T_qi = np.array([invert_pose(T_a) @ T for T in T_wi])
+    turn = Rotation.from_euler("y", 60.0, degrees=True).as_matrix()
+    T_qi[:, :3, 3] = T_qi[:, :3, 3] @ turn.T
+    out = replace(out, T_qi=T_qi)
+    prior = PoseGate(base_pose(T_a) + [0.04, -0.03, np.radians(2.0)], 0.25, np.radians(9.0))
+    hypotheses = prior_poses(T_wi, out, CAMERA, prior, T_a[2, 3], config)
+    assert len(hypotheses) == 1  # the three pairs' rotations are one
+    placed = refine_pose(hypotheses[0], T_wi, out.matches, CAMERA, config, max_shift=prior.max_distance)
+    dt, dr = _errors(placed, T_a)
+    assert dt < 0.01 and dr < 0.1, (dt, dr)
+    verdict = verify_pose(placed, T_wi, out, CAMERA, config, camera_z=T_a[2, 3], prior=prior)
+    assert verdict.ok and verdict.n_supporting == 3, verdict.detail
+    # Expected in room B (whose references were not retrieved): the poses there explain nothing.
+    in_b = PoseGate(base_pose(T_b) + [0.04, -0.03, np.radians(2.0)], 0.25, np.radians(9.0))
+    in_room_b = prior_poses(T_wi, out, CAMERA, in_b, T_b[2, 3], config)
+    assert len(in_room_b) == 1
+    for T in [*in_room_b, refine_pose(in_room_b[0], T_wi, out.matches, CAMERA, config, max_shift=0.25)]:
+        assert not verify_pose(T, T_wi, out, CAMERA, config, camera_z=T_b[2, 3], prior=in_b).ok
+    # A pair turned outside the prior's yaw bound, or rolled, gives no hypothesis.
+    turned = PoseGate(base_pose(T_a) + [0.0, 0.0, np.radians(15.0)], 0.25, np.radians(9.0))
+    assert prior_poses(T_wi, out, CAMERA, turned, T_a[2, 3], config) == []

@@ -647,7 +647,9 @@ class Perceiver:
         ground's, checked against the supporting pairs' (their distance to the pose over their
         backbone translation, median)."""
         out, refs = lost.backbone, lost.references
-        if out is None or not self.anchor.initialized or not (out.confidence > 0).any():
+        if out is None or out.matches is None or not self.anchor.initialized:
+            return None  # without matches a reference's support is a 10 deg test: no placement
+        if not (out.confidence > 0).any():
             return None
         cfg, v = self.config, self.config.verify
         T_wi = self.database.poses[refs]
