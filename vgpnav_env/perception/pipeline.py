@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import rootsift
@@ -86,7 +86,7 @@ from vgpnav_env.perception.verify import (
     single_pair_fallback,
     verify_pose,
 )
-from vgpnav_env.robot import CAMERA_HEIGHT
+from vgpnav_env.robot import CAMERA_HEIGHT, camera_T_wc
 
 logger = logging.getLogger(__name__)
 
@@ -370,20 +370,32 @@ class Perceiver:
         With a ``gate``, a pose outside it is lost ("inconsistent motion"), nothing is fused.
         ``predicted`` (tracking): a predicted camera pose ``T_wc`` (4x4); the references are chosen
         among the database cameras near it (:func:`tracked_references`; none near: lost), else by
-        global retrieval. One attempt per frame: after a lost tracked frame the caller relocalizes
+        global retrieval. One tracked attempt per frame: after a lost tracked frame the caller relocalizes
         on the next (:meth:`~vgpnav_env.perception.state.EKFState.tracking_pose`).
         ``prior``: where a state estimate confidently expects the camera
         (:meth:`~vgpnav_env.perception.state.EKFState.prior`); unlike ``gate`` it rejects nothing,
         a pose inside it needs less from the images (:func:`verify_pose`).
         ``fuse=False``: the caller fuses the frame later if it trusts it (:meth:`fuse`).
+        A frame lost with a ``prior`` gets two more chances, both verified by the images with it: a
+        global attempt (no ``predicted``) a second one with references around the prior's pose
+        (:meth:`_prior_camera`), then a pose placed inside the prior (:meth:`_place_on_prior`, marked
+        :attr:`PerceptionResult.prior_placed`).
         """
         clock = _Clock()
         result, points_w = self._attempt(rgb, privileged, gate, clock, predicted, prior)
-        if not result.localized and prior is not None and result.reason != "inconsistent motion":
+        lost = [result] if prior is not None and result.reason != "inconsistent motion" else []
+        if lost and not result.localized and predicted is None and self.anchor.initialized:
+            around = self._prior_camera(prior)
+            tracked, tracked_points = self._attempt(rgb, privileged, gate, clock, around, prior)
+            if tracked.localized or tracked.backbone is not None:
+                result, points_w = tracked, tracked_points
+                lost = [tracked, *lost] if tracked.reason != "inconsistent motion" else []
+        for attempt in lost if not result.localized else []:
             with clock.stage("verification"):
-                placed = self._place_on_prior(result, prior, gate)
+                placed = self._place_on_prior(attempt, prior, gate)
             if placed is not None:
                 result, points_w = placed
+                break
         if result.localized and fuse:
             with clock.stage("occupancy"):
                 result = replace(result, classes=self._fuse(result, points_w))
@@ -636,6 +648,12 @@ class Perceiver:
         return replace(
             loc, motion=motion, reason="", detail=f"pairs agreeing with the prior after: {loc.detail}"
         )
+
+    def _prior_camera(self, prior: PoseGate) -> NDArray[np.float64]:
+        """The camera pose ``T_wc`` of a robot at the ``prior``'s planar pose: the calibrated camera
+        height above the anchored ground, the database cameras' median pitch (the same mount)."""
+        pitch = float(np.median([camera_yaw_pitch(T)[1] for T in self.database.poses]))
+        return camera_T_wc(prior.pose, float(self.anchor.z_ground) + self.config.camera_height, pitch)
 
     def _place_on_prior(
         self, lost: PerceptionResult, prior: PoseGate, gate: PoseGate | None
