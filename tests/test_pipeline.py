@@ -453,11 +453,35 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
     assert dt < 0.05 and dr < 1.0, (dt, dr)
     away = PoseGate(base_pose(T) + [1.0, 0.0, 0.0], 0.25, np.radians(9.0))
     lost = perceiver.perceive(run.images[i], priv[1], prior=away)
-    assert lost.status == "lost" and lost.reason == "no consensus" and not lost.prior_placed
+    assert lost.status == "lost" and lost.reason == "no consensus" and not lost.prior_placed, (lost.detail, errors(lost.T_wc, T), lost.verdict)
     # The simulated backbone gives no matches: nothing to place a pose by.
     simulated = Perceiver(database, make_backbone("simulated", seed=5), config=failing)
     simulated.reset(anchored.anchor)
     assert simulated.perceive(run.images[i], priv[1], prior=prior).status == "lost"
+
+
+def test_a_global_attempt_lost_with_a_prior_is_retried_around_the_prior(database: Database, query) -> None:
+    """Temporal mode: a frame whose globally retrieved references all fail (both rounds) is lost
+    without a prior; with a certain prior it is retried with references around the prior's pose,
+    localized by them and verified as any tracked frame (not prior-placed)."""
+    run, depth = query
+    i = 2
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    sims = database.index.similarity(run.images[i])
+    first = select_references(sims, database.poses, config.retrieval)
+    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
+    failed = [*first.tolist(), *untried]
+    perceiver = Perceiver(database, _known_failures(failed, seed=0), config=config)
+    perceiver.initialize(run.images[0], Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0]))
+    alone = perceiver.perceive(run.images[i], priv)
+    assert alone.status == "lost" and alone.source == "global"
+    prior = PoseGate(base_pose(run.poses[i]) + [0.05, 0.05, np.radians(2.0)], 0.25, np.radians(9.0))
+    result = perceiver.perceive(run.images[i], priv, prior=prior)
+    assert result.localized and result.source == "tracking" and not result.prior_placed, result.detail
+    assert not set(result.references.tolist()) <= set(failed)
+    dt, dr = errors(result.T_wc, run.poses[i])
+    assert dt < 0.02 and dr < 0.1
 
 
 def test_a_verified_pose_outside_the_prior_is_inconsistent_but_still_measured(

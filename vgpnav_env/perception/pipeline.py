@@ -378,18 +378,22 @@ class Perceiver:
         ``fuse=False``: the caller fuses the frame later if it trusts it (:meth:`fuse`).
         A frame lost with a ``prior`` gets two more chances, both verified by the images with it: a
         global attempt (no ``predicted``) a second one with references around the prior's pose
-        (:meth:`_prior_camera`), then a pose placed inside the prior (:meth:`_place_on_prior`, marked
+        (:meth:`_prior_camera`), a tracked one without database cameras near ``predicted`` a global
+        one; then a pose placed inside the prior (:meth:`_place_on_prior`, marked
         :attr:`PerceptionResult.prior_placed`).
         """
         clock = _Clock()
         result, points_w = self._attempt(rgb, privileged, gate, clock, predicted, prior)
         lost = [result] if prior is not None and result.reason != "inconsistent motion" else []
-        if lost and not result.localized and predicted is None and self.anchor.initialized:
-            around = self._prior_camera(prior)
-            tracked, tracked_points = self._attempt(rgb, privileged, gate, clock, around, prior)
-            if tracked.localized or tracked.backbone is not None:
-                result, points_w = tracked, tracked_points
-                lost = [tracked, *lost] if tracked.reason != "inconsistent motion" else []
+        if lost and not result.localized and self.anchor.initialized:
+            # Global references lost: those around the prior's pose; none near the predicted pose:
+            # global ones (a tracked attempt that ran its backbone gets no second one).
+            around = self._prior_camera(prior) if predicted is None else None
+            if predicted is None or result.backbone is None:
+                again, again_points = self._attempt(rgb, privileged, gate, clock, around, prior)
+                if again.localized or again.backbone is not None:
+                    result, points_w = again, again_points
+                    lost = [again, *lost] if again.reason != "inconsistent motion" else []
         for attempt in lost if not result.localized else []:
             with clock.stage("verification"):
                 placed = self._place_on_prior(attempt, prior, gate)
@@ -700,8 +704,15 @@ class Perceiver:
                 T, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own, prior=prior
             )
             enough = verdict.n_supporting >= max(2, v.min_supporting_references)
-            if verdict.ok and enough and (best is None or verdict.strength > best[3].strength):
-                best = T, pair_scale, float(out.confidence[usable].sum()), verdict
+            if not (verdict.ok and enough) or (best is not None and verdict.strength <= best[3].strength):
+                continue
+            # The prior says where, not whether: the images alone must give the pose its support and
+            # structure (a prior 1 m off placed a pose 0.76 m off with two references of 31 and 37
+            # matches); only a rival outside the prior or the confidence share may object.
+            alone = verify_pose(T, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
+            if alone.check not in ("", "ambiguity", "share"):
+                continue
+            best = T, pair_scale, float(out.confidence[usable].sum()), verdict
         if best is None:
             return None
         T, pair_scale, weight, verdict = best
