@@ -131,9 +131,10 @@ class VerifyConfig:
     gets up to this many poses inside the prior (:func:`prior_poses`: the most confident pairs'
     rotations, positions searched on a grid of this step, then refined by :func:`refine_pose`),
     kept only when :func:`verify_pose` confirms one with at least two supporting references (the
-    Perceiver marks it ``prior_placed``). Replayed on the lost frames of the temporal runs (the
-    EKF's priors as recorded): home 6 of 21 localized (3 within 5 cm / 5 deg, worst 0.17 m),
-    hospital:1 12 of 30 (6 within 5 cm / 5 deg, worst 0.32 m), none more than 0.5 m or 10 deg off.
+    Perceiver marks it ``prior_placed``; the images alone must give it the support and the
+    structure off the planes). Replayed on the lost frames of the temporal runs on 898b354 (the
+    EKF's priors as recorded): home 5 of 21 placed (2 within 5 cm / 5 deg, worst 0.17 m),
+    hospital:1 8 of 30 (5 within 5 cm / 5 deg, worst 0.17 m), none more than 0.5 m or 10 deg off.
     """
 
     pose_height_tolerance: float | None = 0.3
