@@ -292,7 +292,11 @@ class EKFConfig:
     another one gives runs of consistent wrong fixes; they must outweigh the estimate's own
     support, and an accepted fix ends the run). Fixes within ``drift_m`` of the estimate need only
     ``kidnap_fixes``: the estimate drifted (e.g. a blocked step the pixels did not show), it was not
-    carried away. The first
+    carried away. Either way the run must hold fixes of two views: its first taken at least
+    ``init_view_m`` of travel (a blocked step counts none) or ``init_view_deg`` of net turning
+    before its last (by the odometry); fixes of the spot the robot stands on may share one error
+    (hospital seed 4: three fixes of one spot, 0.44 m / 10 deg off, reset an estimate 1 cm off
+    and the robot drove up to 0.53 m off for 60 steps). The first
     estimate of an episode likewise needs ``init_fixes`` consistent fixes, the earliest of them
     taken at least ``init_view_m`` of travel or ``init_view_deg`` of turning before the last (by
     the odometry): a single wrong first fix, or several of one view, would otherwise start the
@@ -407,6 +411,7 @@ class EKFState:
         self._candidate: NDArray[np.float64] | None = None  # the last rejected fix, moved by odometry
         self._candidate_P = np.zeros((3, 3))
         self._candidate_count = 0
+        self._run = np.zeros(2)  # travel (m) and net turn (rad) since the run's first rejected fix
         self._support = 0  # the fixes that set the estimate and those accepted since (capped)
         self._pool: list[_Candidate] = []  # the fixes before the first estimate (the latest)
         self._track = False  # whether this frame tracks (decided by the motion update)
@@ -443,6 +448,7 @@ class EKFState:
         self._have_fix = False
         self._fix = "none"
         self._candidate, self._candidate_count = None, 0
+        self._run = np.zeros(2)
         self._support = 0
         self._pool = []
         self._track = False
@@ -486,7 +492,8 @@ class EKFState:
                 c.P = c.P + Q
             self._decide_tracking()
             return
-        self.predict_odometry(*motion)
+        # a blocked step may have moved nothing: no travel toward another view
+        self.predict_odometry(*motion, travelled=0.0 if self._blocked else None)
 
     def _decide_tracking(self) -> None:
         """After a motion update: whether the new frame tracks -- the estimate is certain enough,
@@ -505,20 +512,25 @@ class EKFState:
         return np.diag([cfg.forward_sigma**2 * steps, cfg.lateral_sigma**2 * steps,
                         np.radians(cfg.turn_sigma_deg) ** 2 * turns])  # fmt: skip
 
-    def predict_odometry(self, motion: ArrayLike, covariance: ArrayLike | None = None) -> None:
+    def predict_odometry(
+        self, motion: ArrayLike, covariance: ArrayLike | None = None, travelled: float | None = None
+    ) -> None:
         """Motion update by measured odometry instead of an action: ``motion`` (forward m, left m,
         yaw rad) in the robot frame of the previous pose (e.g. wheel odometry over a query run's
         continuous motion, possibly refined by visual odometry) with its 3x3 ``covariance``
-        (default :meth:`odometry_covariance`)."""
+        (default :meth:`odometry_covariance`). ``travelled``: the distance surely travelled, toward
+        fixes from another view (default: the motion's; 0 for a blocked step)."""
         d = np.asarray(motion, float)
         Q = self.odometry_covariance(d) if covariance is None else np.asarray(covariance, float)
+        travelled = float(np.hypot(d[0], d[1])) if travelled is None else float(travelled)
         if self._have_fix:
             self._x, self._P = self._odometry(self._x, self._P, d, Q)
         if self._candidate is not None:
             self._candidate, self._candidate_P = self._odometry(self._candidate, self._candidate_P, d, Q)
+            self._run += (travelled, d[2])
         for c in self._pool:
             c.pose, c.P = self._odometry(c.pose, c.P, d, Q)
-            c.moved, c.turned = c.moved + float(np.hypot(d[0], d[1])), c.turned + float(d[2])
+            c.moved, c.turned = c.moved + travelled, c.turned + float(d[2])
         self._decide_tracking()
 
     def _odometry(self, x: NDArray[np.float64], P: NDArray[np.float64], d: NDArray[np.float64], Q_d):
@@ -582,11 +594,13 @@ class EKFState:
             and _mahalanobis2(z, self._candidate, self._candidate_P + R) <= cfg.gate_chi2
         )
         self._candidate_count = self._candidate_count + 1 if agrees else 1
+        if not agrees:
+            self._run = np.zeros(2)
         self._candidate, self._candidate_P = z, R.copy()
         self._fix = "rejected"
         drifted = float(np.linalg.norm(z[:2] - self._x[:2])) <= cfg.drift_m
         needed = cfg.kidnap_fixes if drifted else max(cfg.kidnap_fixes, self._support + 1)
-        if self._candidate_count >= needed:
+        if self._candidate_count >= needed and _other_view(*self._run, cfg):
             logger.debug("kidnapping: %d consistent fixes off the estimate", self._candidate_count)
             self._take(z)
 
@@ -598,9 +612,7 @@ class EKFState:
         cfg, R = self.config, self.config.fix_covariance
         self._pool = [c for c in self._pool if not _too_uncertain(c.P, cfg)]
         agreeing = [c for c in self._pool if _mahalanobis2(z, c.pose, c.P + R) <= cfg.gate_chi2]
-        other_view = any(
-            c.moved >= cfg.init_view_m or abs(c.turned) >= np.radians(cfg.init_view_deg) for c in agreeing
-        )
+        other_view = any(_other_view(c.moved, c.turned, cfg) for c in agreeing)
         self._fix = "unconfirmed"
         if score >= cfg.init_score or (other_view and len(agreeing) + 1 >= cfg.init_fixes):
             self._candidate_count = len(agreeing) + 1
@@ -617,6 +629,14 @@ class EKFState:
         self._fix = "reset"
         self._support = min(self._candidate_count, self.config.max_support)
         self._candidate, self._candidate_count = None, 0
+
+
+def _other_view(travelled: float, turned: float, cfg: EKFConfig) -> bool:
+    """Whether a fix perceived ``travelled`` metres and ``turned`` radians (net, signed) of odometry
+    ago is from another view than the latest: at least ``cfg.init_view_m`` or ``cfg.init_view_deg``
+    (several fixes of one view may share one error: an aliased place seen from where the robot
+    stands)."""
+    return travelled >= cfg.init_view_m or abs(turned) >= np.radians(cfg.init_view_deg)
 
 
 def _too_uncertain(P: NDArray[np.float64], cfg: EKFConfig) -> bool:
