@@ -156,9 +156,9 @@ def test_a_second_call_on_the_same_query_reuses_its_features_and_pairs(scene, mo
     calls = []
     original = ClassicalBackbone.relative_pose
 
-    def counting(self, fq, fr, camera):
+    def counting(self, fq, fr, camera, expected_T_iq=None):
         calls.append(fr)
-        return original(self, fq, fr, camera)
+        return original(self, fq, fr, camera, expected_T_iq)
 
     monkeypatch.setattr(ClassicalBackbone, "relative_pose", counting)
     first = backbone(scene["query"], scene["refs"][:3], CAMERA, reference_keys=[0, 1, 2])
@@ -175,6 +175,13 @@ def test_a_second_call_on_the_same_query_reuses_its_features_and_pairs(scene, mo
     assert len(calls) == before + 1
     backbone(scene["refs"][0], scene["refs"][1:3], CAMERA, reference_keys=[1, 2])
     assert len(calls) == before + 3
+    # A pair's result depends on its expected pose: a keyed pair with a new expectation is new.
+    backbone(scene["query"], scene["refs"][1:3], CAMERA, reference_keys=[1, 2])
+    assert len(calls) == before + 5
+    expected = scene["T_qi"][1:3]
+    for _ in range(2):
+        backbone(scene["query"], scene["refs"][1:3], CAMERA, reference_keys=[1, 2], expected_T_qi=expected)
+        assert len(calls) == before + 7
 
 
 def test_matching_equals_the_explicit_mutual_ratio_test():
@@ -192,3 +199,70 @@ def test_matching_equals_the_explicit_mutual_ratio_test():
         if d1 < 0.8 * d2 and np.argmax(sim[:, order[0]]) == i:
             expected.append((i, order[0]))
     np.testing.assert_array_equal(match_descriptors(a, b, ratio=0.8, mutual=True), np.array(expected))
+
+
+def _perturbed(T_iq: np.ndarray, metres: float, degrees: float) -> np.ndarray:
+    """``T_iq`` with the query moved ``metres`` sideways and turned ``degrees`` about its y axis (yaw)."""
+    c, s = np.cos(np.deg2rad(degrees)), np.sin(np.deg2rad(degrees))
+    turn = np.eye(4)
+    turn[:3, :3] = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    turn[0, 3] = metres
+    return T_iq @ turn
+
+
+@pytest.fixture(scope="module")
+def few_matches(scene):
+    """Query features cut down to 40 of its matches with reference 0 (and reference 0's features):
+    RANSAC alone rejects the pair (under ``min_inliers`` = 50)."""
+    backbone = ClassicalBackbone()
+    fq, fr = backbone.extract(scene["query"]), backbone.extract(scene["refs"][0])
+    matched = match_descriptors(fq.descriptors, fr.descriptors, 0.8, True)[:, 0]
+    keep = np.random.default_rng(0).choice(matched, 40, replace=False)
+    fq = type(fq)(fq.keypoints[keep], fq.descriptors[keep])
+    return fq, fr, invert_pose(scene["T_qi"][0])
+
+
+def test_a_prior_recovers_a_pair_ransac_rejects(few_matches):
+    fq, fr, T_iq = few_matches
+    backbone = ClassicalBackbone()
+    pair, n, pixels = backbone.relative_pose(fq, fr, CAMERA)
+    assert pair is None and len(pixels) < backbone.config.min_inliers
+    # Expected 4 cm and 2 deg off: the matches near that epipolar geometry give the right pose.
+    pair, n, _ = backbone.relative_pose(fq, fr, CAMERA, _perturbed(T_iq, 0.04, 2.0))
+    assert pair is not None and n == pair.n_inliers >= backbone.config.guided_min_inliers
+    assert np.degrees(rotation_angle(pair.R, T_iq[:3, :3])) < 0.5
+    assert direction_error_deg(pair.t, T_iq[:3, 3]) < 3.0
+    assert pair.confidence > 0 and len(pair.depth) > 0
+    # The refinement alone (no RANSAC candidate) converges from the expected pose to the same pose.
+    matches = match_descriptors(fq.descriptors, fr.descriptors, 0.8, True)
+    pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
+    R, t, inliers = backbone.guided_pose(pq, pr, CAMERA, _perturbed(T_iq, 0.04, 2.0))
+    assert np.degrees(rotation_angle(R, T_iq[:3, :3])) < 0.5 and direction_error_deg(t, T_iq[:3, 3]) < 3.0
+    assert inliers.sum() >= n - 3
+    # Ignoring expected poses (guided_min_inliers None) leaves the pair rejected.
+    off = ClassicalBackbone(ClassicalConfig(guided_min_inliers=None))
+    assert off.relative_pose(fq, fr, CAMERA, _perturbed(T_iq, 0.04, 2.0))[0] is None
+
+
+@pytest.mark.parametrize(("metres", "degrees"), [(0.6, 15.0), (0.0, 25.0), (1.0, 0.0)])
+def test_a_wrong_prior_gives_no_pair(few_matches, metres, degrees):
+    fq, fr, T_iq = few_matches
+    backbone = ClassicalBackbone()
+    pair, _, _ = backbone.relative_pose(fq, fr, CAMERA, _perturbed(T_iq, metres, degrees))
+    assert pair is None or (
+        np.degrees(rotation_angle(pair.R, T_iq[:3, :3])) < 0.5
+        and direction_error_deg(pair.t, T_iq[:3, 3]) < 3
+    )
+
+
+def test_expected_poses_leave_passing_pairs_and_are_checked(scene, result):
+    _, out = result
+    backbone = ClassicalBackbone()
+    expected = np.stack([_perturbed(T, 0.03, 1.0) for T in scene["T_qi"]])
+    guided = backbone(scene["query"], scene["refs"], CAMERA, expected_T_qi=expected)
+    np.testing.assert_allclose(guided.T_qi, out.T_qi, atol=1e-6)
+    np.testing.assert_array_equal(guided.n_matches, out.n_matches)
+    with pytest.raises(ValueError, match="expected_T_qi"):
+        backbone(scene["query"], scene["refs"], CAMERA, expected_T_qi=expected[:2])
+    with pytest.raises(ValueError, match="guided_min_inliers"):
+        ClassicalConfig(guided_min_inliers=3)

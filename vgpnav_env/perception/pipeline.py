@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import rootsift
@@ -432,7 +432,8 @@ class Perceiver:
         """Stages 1-4 and verification of one frame (not fused: ``classes`` None) and its metric
         points (None when lost); references around ``predicted`` (None: global retrieval); a
         tracking attempt without near cameras is lost."""
-        loc = self._localize(rgb, privileged, clock, predicted)  # stages 1-3
+        guide = predicted if prior is not None else None  # a confident prediction guides the pairs
+        loc = self._localize(rgb, privileged, clock, predicted, guide)  # stages 1-3
         if not loc.ok:
             loc = self._prior_consensus(loc, clock, prior)
         if not loc.ok:
@@ -544,10 +545,12 @@ class Perceiver:
         privileged: Privileged | None,
         clock: _Clock,
         predicted: NDArray[np.float64] | None = None,
+        guide: NDArray[np.float64] | None = None,
     ) -> _Localization:
         """Stages 1-3 (retrieval, backbone, motion averaging), with the second round of
         :func:`~vgpnav_env.perception.verify.second_round_references` when the first is weak;
-        ``predicted``: references around that camera pose (tracking) instead of the whole database."""
+        ``predicted``: references around that camera pose (tracking) instead of the whole database;
+        ``guide``: the camera pose the backbone's pairs expect (:meth:`_round`)."""
         rgb = np.asarray(rgb)
         expected = (self.camera.height, self.camera.width, 3)
         if rgb.shape != expected or rgb.dtype != np.uint8:
@@ -568,7 +571,7 @@ class Perceiver:
             detail = "empty database" if predicted is None else "no database camera near the predicted pose"
             return _Localization(refs, reason="too few matches", detail=detail, source=source)
         retrieved, other = refs, None
-        out, motion = self._round(rgb, refs, privileged, clock)
+        out, motion = self._round(rgb, refs, privileged, clock, guide)
         if cfg.averaging.method == "weighted":
             with clock.stage("retrieval"):
                 second = second_round_references(
@@ -583,7 +586,7 @@ class Perceiver:
                     pair_scale=(lambda T: self._calibrated_scale(out, T)) if cfg.scale.enabled else None,
                 )
             if len(second):
-                out2, motion2 = self._round(rgb, second, privileged, clock)
+                out2, motion2 = self._round(rgb, second, privileged, clock, guide)
                 logger.debug(
                     "second round: %s ok=%s (%s) -> %s ok=%s (%s)",
                     refs.tolist(),
@@ -610,10 +613,16 @@ class Perceiver:
         return _Localization(refs, out, motion, n_conf, retrieved=retrieved, source=source, other=other)
 
     def _round(
-        self, rgb: NDArray[np.uint8], refs: NDArray[np.int64], privileged: Privileged | None, clock: _Clock
+        self,
+        rgb: NDArray[np.uint8],
+        refs: NDArray[np.int64],
+        privileged: Privileged | None,
+        clock: _Clock,
+        guide: NDArray[np.float64] | None = None,
     ) -> tuple[BackboneOutput, MotionResult]:
         """Stages 2-3 over ``refs``: backbone, then motion averaging whose pose must pass the
-        camera-height check."""
+        camera-height check. ``guide``: a camera pose ``T_wc`` the caller confidently predicts; the
+        backbone gets the relative poses it implies (``expected_T_qi``) to guide its pairs."""
         db = self.database
         with clock.stage("backbone"):
             if privileged is not None:
@@ -624,6 +633,7 @@ class Perceiver:
                 self.camera,
                 privileged=privileged,
                 reference_keys=[int(i) for i in refs],
+                expected_T_qi=None if guide is None else invert_pose(guide) @ db.poses[refs],
             )
         with clock.stage("motion_averaging"):
             cfg = self.config

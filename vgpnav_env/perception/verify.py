@@ -38,7 +38,7 @@ from vgpnav_env.geometry import (
     wrap_angle,
 )
 from vgpnav_env.perception.backbones.base import BackboneOutput
-from vgpnav_env.perception.backbones.classical import triangulate_query_depth
+from vgpnav_env.perception.backbones.classical import sampson_distance, triangulate_query_depth
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
     MotionResult,
@@ -286,12 +286,7 @@ def epipolar_support(
             with np.errstate(divide="ignore", invalid="ignore"):
                 err = f * np.linalg.norm(Rx[:, :2] / Rx[:, 2:3] - x_i[:, :2], axis=1)
         else:
-            E = _skew(t / np.linalg.norm(t)) @ R
-            Ex_q, Etx_i = x_q @ E.T, x_i @ E
-            num = np.einsum("ij,ij->i", x_i, Ex_q)
-            den = Ex_q[:, 0] ** 2 + Ex_q[:, 1] ** 2 + Etx_i[:, 0] ** 2 + Etx_i[:, 1] ** 2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err = f * np.abs(num) / np.sqrt(den)
+            err = f * sampson_distance(x_q, x_i, R, t)
             err[~triangulate_query_depth(x_q, x_i, R, t)[2]] = np.inf
         out[i] = int(np.count_nonzero(np.nan_to_num(err, nan=np.inf) < max_error_px))
     return out
@@ -694,10 +689,6 @@ def rival_pairs(
     own = pair_support(T_wi, out, camera, config) if own is None else own
     weak = support < config.rival_claim_ratio * own
     return np.where(weak, 0, support)
-
-
-def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def check_height(

@@ -13,8 +13,12 @@ A backbone turns a query image and ``k`` reference images (same pinhole camera) 
   ``(u_q, v_q, u_i, v_i)`` the pair's geometry was estimated from, so that any pose can be checked
   against the images (:func:`vgpnav_env.perception.verify.epipolar_support`).
 
-Backbones never see database poses or ground-truth depth; only backbones whose class
-attribute ``privileged`` is True read the :class:`Privileged` bundle.
+Backbones never see ground-truth depth or the query's true pose; only backbones whose class
+attribute ``privileged`` is True read the :class:`Privileged` bundle. A caller that predicts the
+query's pose (tracking) may pass ``expected_T_qi``: the ``T_qi`` it expects, from its predicted
+query pose and the references' database poses (metric translations). It is a prior, not the
+answer: a backbone may use it to guide its two-view geometry (the pose must still come from the
+images) or ignore it, and must stay correct when it is wrong.
 """
 
 from __future__ import annotations
@@ -43,14 +47,16 @@ class Privileged:
 class Views:
     """One backbone call's inputs, checked by :meth:`Backbone.__call__`: the ``query`` and the
     ``references`` (uint8 (H, W, 3) of ``camera``'s size), ``privileged`` ground truth
-    (privileged backbones only) and optional ``reference_keys`` (stable ids, e.g. database
-    indices, for caching per-image work)."""
+    (privileged backbones only), optional ``reference_keys`` (stable ids, e.g. database
+    indices, for caching per-image work) and optional ``expected_T_qi`` (k, 4, 4): the caller's
+    expected relative poses (module docstring; None: no expectation)."""
 
     query: NDArray[np.uint8]
     references: Sequence[NDArray[np.uint8]]
     camera: PinholeCamera
     privileged: Privileged | None = None
     reference_keys: Sequence[Hashable] | None = None
+    expected_T_qi: NDArray[np.float64] | None = None
 
 
 @dataclass
@@ -150,15 +156,23 @@ class Backbone(ABC):
         camera: PinholeCamera,
         privileged: Privileged | None = None,
         reference_keys: Sequence[Hashable] | None = None,
+        expected_T_qi: NDArray[np.float64] | None = None,
     ) -> BackboneOutput:
         """Reconstruct the query and references (see the module docstring for frames and scale).
 
         Images must be uint8 (H, W, 3) of ``camera``'s size (else ValueError). ``reference_keys``
         are optional stable identifiers of the references (e.g. database indices) a backbone may
-        use to cache per-image work; ``privileged`` is read by privileged backbones only.
+        use to cache per-image work; ``privileged`` is read by privileged backbones only;
+        ``expected_T_qi`` (k, 4, 4): the caller's expected relative poses (module docstring).
         """
         check_inputs(query, references, camera, reference_keys)
-        return self.reconstruct(Views(query, references, camera, privileged, reference_keys))
+        if expected_T_qi is not None:
+            expected_T_qi = np.asarray(expected_T_qi, float)
+            if expected_T_qi.shape != (len(references), 4, 4):
+                raise ValueError(
+                    f"expected_T_qi must have shape ({len(references)}, 4, 4), got {expected_T_qi.shape}"
+                )
+        return self.reconstruct(Views(query, references, camera, privileged, reference_keys, expected_T_qi))
 
     @abstractmethod
     def reconstruct(self, views: Views) -> BackboneOutput:

@@ -10,12 +10,24 @@ agree up to one factor per pair), then the shared scale is fixed by
     keypoints is 1.
 
 ``n_matches`` counts the matches verified by the pair's essential matrix (0 if RANSAC did not
-run). Pairs outside the largest consistent group keep their rotation and translation direction but
-get ``scale_valid = False`` (and their confidence times ``unlinked_confidence_factor``).
+run). Pairs outside the largest consistent group keep their rotation and translation direction
+but get ``scale_valid = False`` (and their confidence times ``unlinked_confidence_factor``).
 Pair confidence = min(1, inliers / full_confidence_inliers) * sqrt(inlier ratio) *
 clip(median parallax / full_confidence_parallax_deg, 0.1, 1) * clip((1 - h) / planar_confidence_span,
 0.2, 1), where h = homography inliers / essential inliers: a dominant plane leaves the 5-point
 pose ambiguous (on rendered homes, gross pairs had h ~0.9 vs ~0.7 for good ones).
+
+Prior-guided pairs (tracking): with the caller's expected relative poses (``Views.expected_T_qi``),
+a pair that RANSAC rejects (under ``min_inliers`` inliers) is re-estimated from the images by
+:meth:`ClassicalBackbone.guided_pose`: hypotheses near the expected pose (its refinement on the
+matches near its epipolar geometry, 5-point samples of those matches, RANSAC's own pose) that agree
+with it (:meth:`ClassicalBackbone.agrees`: yaw and roll within ``guided_max_rotation_deg``, pitch --
+which a planar state estimate does not know -- within ``guided_max_pitch_deg``, translation
+direction within what ``guided_position_m`` of position error allows) compete by inliers at
+``max_epipolar_error``. The best is kept with at least ``guided_min_inliers`` inliers, half of
+RANSAC's and ``guided_min_off_plane`` off the pair's dominant plane, its confidence times
+``guided_confidence_factor``. A pair RANSAC accepts is never replaced (a wrong expectation must not
+overrule the images), and the pipeline verifies the pose the pairs give.
 
 A dense query depth comes from :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`
 against the widest-baseline of the most confident linked references (see that module for the
@@ -34,7 +46,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Hashable
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +55,7 @@ import numpy as np
 import poselib
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial.transform import Rotation
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Views
@@ -67,7 +80,16 @@ class ClassicalConfig:
     ``sweep_references`` by baseline among the ``sweep_candidates`` most confident) and the
     :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep``. ``threads``: the
     independent pairs and plane-sweep chunks run on that many threads (0 = every available core,
-    1 = serial; results are the same).
+    1 = serial; results are the same). Prior-guided pairs (module docstring): ``guided_min_inliers``
+    (None: expected poses are ignored), ``guided_min_share`` (the guided pose needs at least this
+    share of RANSAC's inliers, and ``guided_min_off_plane`` of them off the pair's dominant plane: a
+    plane's matches fit poses near any expectation), ``guided_bands_px`` (the refinement's Sampson
+    bands, pixels; the widest also bounds the matches ``guided_iterations`` 5-point samples are drawn from),
+    ``guided_max_rotation_deg``, ``guided_max_pitch_deg`` (seeds every ``guided_pitch_step_deg``
+    within it), ``guided_position_m`` (the expected pose's position error: the translation direction
+    may differ by asin(guided_position_m / baseline), at least ``guided_min_direction_deg``),
+    ``guided_confidence_factor`` (a guided pair's confidence factor: it fills in where RANSAC's
+    pairs fail without pulling their average).
     """
 
     max_keypoints: int = 1500
@@ -91,6 +113,17 @@ class ClassicalConfig:
     sweep_references: int = 5
     sweep: SweepConfig = field(default_factory=SweepConfig)
     threads: int = 0
+    guided_min_inliers: int | None = 15
+    guided_min_share: float = 0.5
+    guided_min_off_plane: int = 8
+    guided_confidence_factor: float = 0.2
+    guided_iterations: int = 100
+    guided_bands_px: tuple[float, ...] = (8.0, 4.0, 2.0, 1.0)
+    guided_max_rotation_deg: float = 3.0
+    guided_max_pitch_deg: float = 9.0
+    guided_pitch_step_deg: float = 3.0
+    guided_position_m: float = 0.2
+    guided_min_direction_deg: float = 10.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:
@@ -101,6 +134,18 @@ class ClassicalConfig:
             raise ValueError("need 1 <= sweep_references <= sweep_candidates")
         if self.threads < 0:
             raise ValueError(f"threads must be >= 0 (0 = all cores), got {self.threads}")
+        if self.guided_min_inliers is not None and self.guided_min_inliers < 5:
+            raise ValueError(f"guided_min_inliers must be >= 5 or None, got {self.guided_min_inliers}")
+        if not (0 <= self.guided_min_share <= 1 and 0 < self.guided_confidence_factor <= 1):
+            raise ValueError("need guided_min_share in [0, 1] and guided_confidence_factor in (0, 1]")
+        if not self.guided_bands_px or min(self.guided_bands_px) <= 0:
+            raise ValueError(f"guided_bands_px must be positive pixels, got {self.guided_bands_px}")
+        angles = (self.guided_max_rotation_deg, self.guided_min_direction_deg, self.guided_pitch_step_deg)
+        if min(angles) <= 0 or self.guided_position_m < 0 or self.guided_max_pitch_deg < 0:
+            raise ValueError(
+                "need guided_max_rotation_deg, guided_min_direction_deg, guided_pitch_step_deg > 0 and "
+                "guided_position_m, guided_max_pitch_deg >= 0"
+            )
 
 
 @dataclass(frozen=True)
@@ -231,6 +276,45 @@ class FeatureCache:
 
     def clear(self) -> None:
         self._items.clear()
+
+
+def _poselib_camera(camera: PinholeCamera) -> dict[str, Any]:
+    """poselib's camera dict of a pinhole camera."""
+    K = camera.K
+    return {
+        "model": "PINHOLE",
+        "width": camera.width,
+        "height": camera.height,
+        "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+    }
+
+
+def _pitch_rotation(angle: float) -> NDArray[np.float64]:
+    """Rotation by ``angle`` radians about the camera's x axis (a pitch change, OpenCV axes)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _pitch_and_rest(R: NDArray[np.float64]) -> tuple[float, float]:
+    """Swing-twist split of a camera-frame rotation: its twist about the x axis (radians, signed: a
+    pitch change) and the angle of the remaining swing (radians)."""
+    x, _, _, w = Rotation.from_matrix(R).as_quat()
+    twist = 2.0 * np.arctan2(x, w)
+    return float(np.arctan2(np.sin(twist), np.cos(twist))), float(2.0 * np.arccos(min(1.0, np.hypot(x, w))))
+
+
+def sampson_distance(
+    x_q: NDArray[np.float64], x_r: NDArray[np.float64], R: NDArray[np.float64], t: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Sampson distance (normalised image units: times the focal length, pixels) of normalised ray
+    pairs (n, 3) ``(x, y, 1)`` to the epipolar geometry of ``x_r ~ R x_q d + t`` (E = [t]x R; any
+    nonzero length of ``t``); nan where undefined."""
+    Ex_q = np.cross(t, x_q @ R.T)
+    Etx_r = np.cross(x_r, t) @ R
+    num = np.einsum("ij,ij->i", x_r, Ex_q)
+    den = Ex_q[:, 0] ** 2 + Ex_q[:, 1] ** 2 + Etx_r[:, 0] ** 2 + Etx_r[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(num) / np.sqrt(den)
 
 
 @dataclass(frozen=True)
@@ -416,23 +500,24 @@ class ClassicalBackbone(Backbone):
         return self._query_memo
 
     def relative_pose(
-        self, fq: Features, fr: Features, camera: PinholeCamera
+        self,
+        fq: Features,
+        fr: Features,
+        camera: PinholeCamera,
+        expected_T_iq: NDArray[np.float64] | None = None,
     ) -> tuple[PairGeometry | None, int, NDArray[np.float32]]:
         """Two-view geometry of one pair (None when it fails), its verified match count and its
-        putative matches (m, 4) float32 pixels ``(u_q, v_q, u_r, v_r)``."""
+        putative matches (m, 4) float32 pixels ``(u_q, v_q, u_r, v_r)``. ``expected_T_iq`` (4, 4):
+        the query's expected pose in the reference camera (metric), for a prior-guided pair
+        (module docstring; None: RANSAC alone)."""
         cfg = self.config
         matches = match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
         pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
         pixels = np.hstack([pq, pr]).astype(np.float32)
-        if len(matches) < cfg.min_inliers:
+        guided = expected_T_iq is not None and cfg.guided_min_inliers is not None
+        if len(matches) < (min(cfg.min_inliers, cfg.guided_min_inliers) if guided else cfg.min_inliers):
             return None, 0, pixels
-        K = camera.K
-        cam = {
-            "model": "PINHOLE",
-            "width": camera.width,
-            "height": camera.height,
-            "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
-        }
+        cam = _poselib_camera(camera)
         pose, info = poselib.estimate_relative_pose(
             pq,
             pr,
@@ -445,13 +530,28 @@ class ClassicalBackbone(Backbone):
             },
             {},
         )
-        inliers = np.asarray(info["inliers"], bool)
-        n_inliers = int(inliers.sum())
-        if n_inliers < cfg.min_inliers:
-            return None, n_inliers, pixels
         R, t = np.asarray(pose.R), np.asarray(pose.t)
+        inliers = np.asarray(info["inliers"], bool)
+        accepted = int(inliers.sum()) >= cfg.min_inliers
+        # Matches explained by one homography (a dominant plane) leave the 5-point pose ambiguous.
+        _, h_mask = cv2.findHomography(
+            pq, pr, cv2.RANSAC, cfg.homography_threshold, maxIters=500, confidence=0.99
+        )
+        on_plane = h_mask.ravel().astype(bool) if h_mask is not None else np.zeros(len(pq), bool)
+        trust = 1.0
+        if guided and not accepted:
+            found = self.guided_pose(pq, pr, camera, expected_T_iq, candidates=[(R, t)])
+            if (
+                found is not None
+                and found[2].sum() >= cfg.guided_min_share * inliers.sum()
+                and (found[2] & ~on_plane).sum() >= cfg.guided_min_off_plane
+            ):
+                (R, t, inliers), accepted, trust = found, True, cfg.guided_confidence_factor
+        n_inliers = int(inliers.sum())
+        if not accepted:
+            return None, n_inliers, pixels
         t = t / np.linalg.norm(t)
-        K_inv = np.linalg.inv(K)
+        K_inv = np.linalg.inv(camera.K)
         x_q = np.c_[pq[inliers], np.ones(n_inliers)] @ K_inv.T
         x_r = np.c_[pr[inliers], np.ones(n_inliers)] @ K_inv.T
         depth, parallax, valid = triangulate_query_depth(x_q, x_r, R, t)
@@ -459,11 +559,7 @@ class ClassicalBackbone(Backbone):
         median_parallax = float(np.degrees(np.median(parallax[valid]))) if valid.any() else 0.0
         support = min(1.0, n_inliers / cfg.full_confidence_inliers) * np.sqrt(n_inliers / len(matches))
         geometry = float(np.clip(median_parallax / cfg.full_confidence_parallax_deg, 0.1, 1.0))
-        # Matches explained by one homography (a dominant plane) leave the 5-point pose ambiguous.
-        _, h_mask = cv2.findHomography(
-            pq, pr, cv2.RANSAC, cfg.homography_threshold, maxIters=500, confidence=0.99
-        )
-        h_ratio = float(h_mask.sum()) / n_inliers if h_mask is not None else 0.0
+        h_ratio = float(on_plane.sum()) / n_inliers
         planarity = float(np.clip((1.0 - h_ratio) / cfg.planar_confidence_span, 0.2, 1.0))
         return (
             PairGeometry(
@@ -471,13 +567,113 @@ class ClassicalBackbone(Backbone):
                 t=t,
                 n_matches=len(matches),
                 n_inliers=n_inliers,
-                confidence=float(support * geometry * planarity),
+                confidence=float(support * geometry * planarity * trust),
                 query_index=matches[:, 0][inliers][good],
                 depth=depth[good],
             ),
             n_inliers,
             pixels,
         )
+
+    def agrees(
+        self, R: NDArray[np.float64], t: NDArray[np.float64], expected_T_iq: NDArray[np.float64]
+    ) -> bool:
+        """Whether the relative pose ``x_ref = R x_query + t`` (any length of ``t``) agrees with the
+        expected ``T_iq`` (4, 4, metric): the query camera's rotation off the expected one about its
+        own x axis (its pitch: a planar state estimate does not know it) within
+        ``guided_max_pitch_deg``, the rest within ``guided_max_rotation_deg``; the translation
+        direction within asin(``guided_position_m`` / baseline) (at least
+        ``guided_min_direction_deg``; any direction when the baseline is under ``guided_position_m``)."""
+        cfg = self.config
+        pitch, rest = _pitch_and_rest(expected_T_iq[:3, :3].T @ R)
+        if abs(pitch) > np.deg2rad(cfg.guided_max_pitch_deg) or rest > np.deg2rad(
+            cfg.guided_max_rotation_deg
+        ):
+            return False
+        t0 = expected_T_iq[:3, 3]
+        baseline, length = float(np.linalg.norm(t0)), float(np.linalg.norm(t))
+        if baseline <= cfg.guided_position_m or length == 0:
+            return baseline <= cfg.guided_position_m
+        limit = max(np.deg2rad(cfg.guided_min_direction_deg), np.arcsin(cfg.guided_position_m / baseline))
+        return bool(np.arccos(np.clip(float(t @ t0) / (baseline * length), -1.0, 1.0)) <= limit)
+
+    def guided_pose(
+        self,
+        pq: NDArray[np.floating],
+        pr: NDArray[np.floating],
+        camera: PinholeCamera,
+        expected_T_iq: NDArray[np.float64],
+        candidates: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]] = (),
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None:
+        """The prior-guided relative pose of matched pixels ``pq``, ``pr`` (m, 2): ``(R, t, inliers)``
+        of the pose that :meth:`agrees` with ``expected_T_iq`` and has most inliers (Sampson distance
+        under ``max_epipolar_error``), or None when none has ``guided_min_inliers``. Hypotheses:
+        ``candidates`` (e.g. RANSAC's ``(R, t)``), the expected pose refined on the matches
+        (poselib's Cauchy-robust refinement on the matches within each band of ``guided_bands_px``
+        around the current pose), and ``guided_iterations`` 5-point samples (seeded: deterministic)
+        of the matches within the widest band around the expected pose; the best is refined on its
+        inliers (kept if it loses no inliers and still agrees)."""
+        cfg = self.config
+        K_inv = np.linalg.inv(camera.K)
+        focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+        x_q = np.c_[pq, np.ones(len(pq))] @ K_inv.T
+        x_r = np.c_[pr, np.ones(len(pr))] @ K_inv.T
+        cam = _poselib_camera(camera)
+
+        def inliers(R: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.bool_]:
+            return focal * sampson_distance(x_q, x_r, R, t) < cfg.max_epipolar_error
+
+        def refine(pose: Any, near: NDArray[np.bool_], band: float) -> Any:
+            options = {"loss_type": "CAUCHY", "loss_scale": 0.5 * band / focal}
+            return poselib.refine_relative_pose(pq[near], pr[near], pose, cam, cam, options)[0]
+
+        poses = list(candidates)
+        baseline = float(np.linalg.norm(expected_T_iq[:3, 3]))
+        if baseline > 0:
+            t0 = expected_T_iq[:3, 3] / baseline
+            # The expected pose at several pitches; the two whose widest band holds most matches seed.
+            limit = cfg.guided_max_pitch_deg
+            pitches = np.deg2rad(np.arange(-limit, limit + 1e-9, cfg.guided_pitch_step_deg))
+            seeds = [expected_T_iq[:3, :3] @ _pitch_rotation(a) for a in pitches]
+            bands = [focal * sampson_distance(x_q, x_r, R0, t0) < max(cfg.guided_bands_px) for R0 in seeds]
+            order = np.argsort([-b.sum() for b in bands], kind="stable")[:2]
+            wide = np.logical_or.reduce([bands[k] for k in order])
+            for k in order:
+                pose = poselib.CameraPose()
+                pose.R, pose.t = seeds[k], t0
+                for band in cfg.guided_bands_px:
+                    near = focal * sampson_distance(x_q, x_r, np.asarray(pose.R), np.asarray(pose.t)) < band
+                    if near.sum() < 5:
+                        break
+                    pose = refine(pose, near, band)
+                else:
+                    poses.append((np.asarray(pose.R), np.asarray(pose.t)))
+            pool = np.flatnonzero(wide)
+            if len(pool) >= 5:
+                rays_q = x_q / np.linalg.norm(x_q, axis=1, keepdims=True)
+                rays_r = x_r / np.linalg.norm(x_r, axis=1, keepdims=True)
+                rng = np.random.default_rng(0)
+                for _ in range(cfg.guided_iterations):
+                    sample = rng.choice(pool, 5, replace=False)
+                    poses += [(p.R, p.t) for p in poselib.relpose_5pt(rays_q[sample], rays_r[sample])]
+        best = None
+        for R, t in poses:
+            R, t = np.asarray(R), np.asarray(t)
+            if not self.agrees(R, t, expected_T_iq):
+                continue
+            mask = inliers(R, t)
+            if best is None or mask.sum() > best[2].sum():
+                best = (R, t, mask)
+        if best is None or best[2].sum() < 5:
+            return None
+        pose = poselib.CameraPose()
+        pose.R, pose.t = best[0], best[1]
+        pose = refine(pose, inliers(best[0], best[1]), cfg.max_epipolar_error)
+        R, t = np.asarray(pose.R), np.asarray(pose.t)
+        mask = inliers(R, t)
+        if mask.sum() >= best[2].sum() and self.agrees(R, t, expected_T_iq):
+            best = (R, t, mask)
+        return best if best[2].sum() >= cfg.guided_min_inliers else None
 
     def reconstruct(self, views: Views) -> BackboneOutput:
         query, references, camera = views.query, views.references, views.camera
@@ -489,9 +685,16 @@ class ClassicalBackbone(Backbone):
         frefs = [self.features(ref, key) for ref, key in zip(references, keys, strict=True)]
         clock.lap("features")
 
+        expected = None if views.expected_T_qi is None else invert_pose(views.expected_T_qi)
+        if expected is not None:  # a pair's result depends on its expected pose too
+            keys = [None if key is None else (key, expected[i].tobytes()) for i, key in enumerate(keys)]
         todo = [i for i, key in enumerate(keys) if key is None or key not in memo.pairs]
         computed = thread_map(
-            lambda i: self.relative_pose(memo.features, frefs[i], camera), todo, self.config.threads
+            lambda i: self.relative_pose(
+                memo.features, frefs[i], camera, None if expected is None else expected[i]
+            ),
+            todo,
+            self.config.threads,
         )
         fresh = dict(zip(todo, computed, strict=True))
         for i in todo:
