@@ -13,7 +13,10 @@
    camera-to-base height); falls back to the ray-implied scale when no ground is seen;
 5. occupancy: metric points (confident pixels, every ``point_stride``-th pixel) classified by
    height and fused into the perceiver's log-odds map (:attr:`Perceiver.map`) on top of the
-   database's prior.
+   database's prior. With the classical backbone a localized frame's points come from its depth
+   swept again at the final pose against the database's metric poses
+   (:mod:`~vgpnav_env.perception.posed_depth`, ``PerceptionConfig.depth``), not from the
+   backbone's depth at the two-view poses and the ground scale.
 
 What makes localization robust beyond these stages -- the camera-height and scale checks, the
 caller's pose gate, a second round of references around the first round's pose hypotheses, the
@@ -35,10 +38,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, transform_points
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
-from vgpnav_env.perception.backbones.classical import rootsift
+from vgpnav_env.perception.backbones.classical import ClassicalBackbone, rootsift
 from vgpnav_env.perception.database import Database
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
@@ -48,6 +51,7 @@ from vgpnav_env.perception.motion_averaging import (
 )
 from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
 from vgpnav_env.perception.points import depth_points
+from vgpnav_env.perception.posed_depth import PosedDepthConfig, posed_depth, posed_references
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
     TrackingConfig,
@@ -134,6 +138,7 @@ class PerceptionConfig:
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
     verify: VerifyConfig = field(default_factory=VerifyConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    depth: PosedDepthConfig = field(default_factory=PosedDepthConfig)
     camera_height: float = CAMERA_HEIGHT
 
     def __post_init__(self) -> None:
@@ -400,10 +405,45 @@ class Perceiver:
             if placed is not None:
                 result, points_w = placed
                 break
+        if result.localized:
+            with clock.stage("occupancy"):
+                posed = self._posed_points(rgb, result, points_w)
+            if posed is not None:
+                result, points_w = replace(result, points_w=posed.astype(np.float32)), posed
         if result.localized and fuse:
             with clock.stage("occupancy"):
                 result = replace(result, classes=self._fuse(result, points_w))
         return replace(result, timings=clock.stop())
+
+    def _posed_points(
+        self, rgb: NDArray[np.uint8], result: PerceptionResult, points_w: NDArray[np.float64]
+    ) -> NDArray[np.float64] | None:
+        """The localized frame's metric points from the depth swept again at its pose
+        (:mod:`~vgpnav_env.perception.posed_depth`, ``config.depth``) against the classical
+        backbone's sweep references and the database cameras that see its first ``points_w`` best;
+        None (keep ``points_w``) when off, for other backbones, or without points."""
+        cfg, net, out = self.config.depth, self.backbone, result.backbone
+        if not cfg.enabled or not isinstance(net, ClassicalBackbone) or out is None or len(points_w) == 0:
+            return None
+        db, T_wc, occ = self.database, result.T_wc, self.config.occupancy
+        own = result.references[net.select_sweep_references(out.confidence, out.scale_valid, out.T_iq)]
+        refs = posed_references(T_wc, db.poses, own, points_w, self.camera, cfg)
+        if len(refs) == 0:
+            return None
+        depths = ((points_w - T_wc[:3, 3]) @ T_wc[:3, :3])[:, 2]
+        depth, confidence = posed_depth(
+            rgb, [db.images[i] for i in refs], db.poses[refs], T_wc, self.camera, depths,
+            net.config.sweep, threads=net.config.threads,
+        )  # fmt: skip
+        points_q, _ = depth_points(
+            self.camera,
+            depth,
+            confidence,
+            stride=occ.point_stride,
+            min_confidence=occ.min_confidence,
+            max_depth=occ.max_depth,
+        )
+        return transform_points(T_wc, points_q)
 
     def fuse(self, result: PerceptionResult) -> PointClasses:
         """Fuse a localized frame's metric points into :attr:`map` (stage 5); their classes."""

@@ -1,0 +1,101 @@
+"""Dense query depth under a localized pose: the plane sweep re-run with the database's metric poses.
+
+The classical backbone sweeps the query against its references at the relative poses of the
+two-view pairs (:mod:`~vgpnav_env.perception.backbones.stereo`), before any pose is known: a pair
+whose two-view pose is wrong but scale-linked still enters the sweep (on home's temporal query
+run, sweep references 10-90 deg off the relative pose the final pose implies were common, and
+outvoted only in part), and a frame with one or two pairs has one or two sweep references. Once the
+pose ``T_wc`` is localized and verified, the relative pose of EVERY database camera is known
+metrically (``T_iq = T_wi^-1 T_wc``), so the depth is swept again:
+
+- references: the backbone's own sweep references (two-view pairs that passed), then the database
+  cameras (:func:`~vgpnav_env.perception.retrieval.nearby_cameras`, ``radius`` metres and
+  ``max_angle_deg``, at least ``min_baseline`` metres away) that see most of the frame's first
+  points (``points_w``: the fraction of them that project inside the camera, minus
+  ``distance_weight`` per metre of baseline), up to ``references``;
+- depth range: the first points' depths (metres);
+- output: a METRIC query z-depth (H, W) and its confidence, no scale left to recover.
+
+Measured offline on the dumped sweep inputs of the temporal query runs (classical, 320x240, k = 10,
+all localized frames, Acc / Comp mean at the pipeline's pose): home 0.062 / 0.054 -> 0.065 / 0.049
+m, home:2 0.077 / 0.064 -> 0.053 / 0.037 m (median 0.063 / 0.058 -> 0.025 / 0.023); the same
+sweep at the true pose: home 0.044 / 0.036 m (the remaining error is mostly the pose's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from vgpnav_env.geometry import PinholeCamera, invert_pose
+from vgpnav_env.perception.backbones.stereo import SweepConfig, plane_sweep
+from vgpnav_env.perception.retrieval import nearby_cameras
+
+
+@dataclass(frozen=True)
+class PosedDepthConfig:
+    """The re-sweep after localization (module docstring); ``enabled`` False keeps the backbone's
+    depth. ``sample_stride``: every that many of the first points score the overlap."""
+
+    enabled: bool = True
+    references: int = 5
+    radius: float = 2.0
+    max_angle_deg: float = 45.0
+    min_baseline: float = 0.15
+    distance_weight: float = 0.1
+    sample_stride: int = 7
+
+    def __post_init__(self) -> None:
+        if self.references < 1 or self.sample_stride < 1:
+            raise ValueError(f"references and sample_stride must be >= 1, got {self}")
+        if self.radius <= self.min_baseline or self.min_baseline < 0 or not 0 < self.max_angle_deg <= 180:
+            raise ValueError(f"need 0 <= min_baseline < radius and max_angle_deg in (0, 180], got {self}")
+
+
+def posed_references(
+    T_wc: NDArray[np.float64],
+    T_w: NDArray[np.float64],
+    fixed: NDArray[np.int64],
+    points_w: NDArray[np.float64],
+    camera: PinholeCamera,
+    config: PosedDepthConfig,
+) -> NDArray[np.int64]:
+    """Database indices to sweep a query at ``T_wc`` against: ``fixed`` first (at most
+    ``config.references``), then the cameras of ``T_w`` (M, 4, 4) near ``T_wc`` ranked by the
+    fraction of ``points_w`` (N, 3, W) inside their image minus ``distance_weight`` x baseline."""
+    cfg = config
+    picked = [int(i) for i in fixed][: cfg.references]
+    near = nearby_cameras(T_w, T_wc, cfg.radius, cfg.max_angle_deg, min_distance=cfg.min_baseline)
+    candidates = np.setdiff1d(near.index, picked)
+    sample = np.asarray(points_w, float)[:: cfg.sample_stride]
+    if len(picked) >= cfg.references or len(candidates) == 0 or len(sample) == 0:
+        return np.array(picked, np.int64)
+    T_iw = invert_pose(T_w[candidates])
+    P = np.einsum("mij,nj->mni", T_iw[:, :3, :3], sample) + T_iw[:, None, :3, 3]
+    uv, z = camera.project(P)
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
+    inside &= (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1)
+    distance = np.linalg.norm(T_w[candidates, :3, 3] - T_wc[:3, 3], axis=1)
+    score = inside.mean(axis=1) - cfg.distance_weight * distance
+    ranked = candidates[np.argsort(-score, kind="stable")]
+    picked += [int(i) for i in ranked[: cfg.references - len(picked)]]
+    return np.array(picked, np.int64)
+
+
+def posed_depth(
+    query: NDArray[np.uint8],
+    references: list[NDArray[np.uint8]],
+    T_wi: NDArray[np.float64],
+    T_wc: NDArray[np.float64],
+    camera: PinholeCamera,
+    depths_m: NDArray[np.float64],
+    sweep: SweepConfig | None = None,
+    threads: int = 1,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Metric query z-depth (H, W; 0 where unknown) and confidence of the plane sweep of ``query``
+    at ``T_wc`` against ``references`` at their poses ``T_wi`` (k, 4, 4), over the range of the
+    depths ``depths_m`` (metres, e.g. the query's first points)."""
+    T_iq = invert_pose(np.asarray(T_wi, float)) @ np.asarray(T_wc, float)
+    return plane_sweep(query, references, T_iq, camera, np.asarray(depths_m, float), sweep, threads=threads)
