@@ -509,6 +509,8 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
     placed = perceiver.perceive(run.images[i], priv[1], prior=prior)
     assert placed.localized and placed.prior_placed and "placed inside the prior" in placed.detail
     assert placed.verdict.n_supporting >= 2
+    # Points only at the ground's scale: without it, the pose alone.
+    assert (placed.scale_source == "ground") == (len(placed.points_w) > 0)
     dt, dr = errors(placed.T_wc, T)
     assert dt < 0.05 and dr < 1.0, (dt, dr)
     away = PoseGate(base_pose(T) + [1.0, 0.0, 0.0], 0.25, np.radians(9.0))
