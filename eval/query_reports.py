@@ -112,7 +112,9 @@ def worst_frames_figure(
     build_dir: Path, records: Sequence[FrameRecord], n: int = 6, n_refs: int = 5
 ) -> Figure:
     """The worst frames (:func:`worst_frames`), one row each: the query, then up to ``n_refs`` of the
-    references its pose came from, each titled with its distance / angle to the TRUE query pose."""
+    references its pose came from, each titled with its distance / angle to the TRUE query pose (the
+    query's title says whether its retrieval missed and whether only the state estimate's prior
+    placed it, :attr:`FrameRecord.prior_placed`)."""
     rows = worst_frames(records, n)
     fig = Figure(figsize=(2.0 * (n_refs + 1), 1.75 * max(len(rows), 1)))
     if not rows:
@@ -123,8 +125,13 @@ def worst_frames_figure(
     for row, r in zip(axes, rows, strict=True):
         T_true = build.query.poses[r.frame]
         row[0].imshow(build.query.images[r.frame])
-        hit = "" if r.retrieval_hit else ", retrieval missed"
-        row[0].set_title(f"q{r.frame}: {r.translation_m:.2f} m / {r.rotation_deg:.0f}°{hit}", fontsize=6)
+        notes = [
+            n
+            for n, on in (("retrieval missed", not r.retrieval_hit), ("placed by the prior", r.prior_placed))
+            if on
+        ]
+        title = f"q{r.frame}: {r.translation_m:.2f} m / {r.rotation_deg:.0f}°"
+        row[0].set_title("\n".join([title, ", ".join(notes)]) if notes else title, fontsize=6)
         for ax, j in zip(row[1:], [*r.references, *([None] * n_refs)], strict=False):
             if j is not None:
                 ax.imshow(build.database.images[j])

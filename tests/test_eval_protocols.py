@@ -20,7 +20,13 @@ from vgpnav_env.eval.perception_runs import (
     query_subset,
     retrieval_hit,
 )
-from vgpnav_env.eval.query_reports import localization_summary, scene_report, trust_metrics, worst_frames
+from vgpnav_env.eval.query_reports import (
+    localization_summary,
+    scene_report,
+    trust_metrics,
+    worst_frames,
+    worst_frames_figure,
+)
 from vgpnav_env.geometry import camera_pose
 from vgpnav_env.perception.pipeline import LOST_REASONS, PerceptionConfig
 
@@ -448,3 +454,16 @@ def test_localization_report_shows_both_perception_modes(build: Path, tmp_path: 
     assert r["modes"]["paper"]["lost_rate"] == 0.0 and r["modes"]["temporal"]["no_estimate_rate"] > 0
     assert r["modes"]["temporal"]["cpu_s_per_frame"] > 0 and "estimate_p95_m" in r
     assert "## Perception modes" in (out / "report.md").read_text()
+
+
+def test_worst_frames_figure_says_which_poses_only_the_prior_placed(build: Path) -> None:
+    records = [
+        _frame(0, 0.01, 0.1),
+        replace(_frame(1, 0.2, 1.0), prior_placed=True),
+        _frame(2, 0.1, 0.5, hit=False),
+    ]
+    fig = worst_frames_figure(build, records, n=3, n_refs=1)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title().startswith("q")]
+    assert titles[0] == "q1: 0.20 m / 1°\nplaced by the prior"
+    assert titles[1] == "q2: 0.10 m / 0°\nretrieval missed"
+    assert not any("placed" in t for t in titles[1:])
