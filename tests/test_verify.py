@@ -28,6 +28,7 @@ from vgpnav_env.perception.verify import (
     prior_poses,
     refine_pose,
     rival_pairs,
+    slide_on_ray,
     verify_pose,
 )
 from vgpnav_env.robot import base_pose
@@ -620,3 +621,30 @@ def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> 
     # A pair turned outside the prior's yaw bound, or rolled, gives no hypothesis.
     turned = PoseGate(base_pose(T_a) + [0.0, 0.0, np.radians(15.0)], 0.25, np.radians(9.0))
     assert prior_poses(T_wi, out, CAMERA, turned, T_a[2, 3], config) == []
+
+
+def test_slide_on_ray_moves_a_pose_placed_at_the_wrong_scale_to_where_the_references_see_it() -> None:
+    """The first pair's ray is right but its scale 25 % long (home's frames 104, 105: 0.19, 0.31 m
+    off along a ray 0.2 deg right): the other references' matches put the query back on the truth,
+    and the factor says how far the scale was off. A right pose, a position several rays carry, a
+    truth out of reach or the slide switched off move nothing."""
+    T_a, _, T_wi, out = _aliased_frame("A")
+    config = VerifyConfig()
+    T_qi = np.array([invert_pose(T_a) @ T for T in T_wi])
+    out = replace(out, T_qi=T_qi)
+    centre = T_wi[0][:3, 3]
+    far = T_a.copy()
+    far[:3, 3] = centre + 1.25 * (T_a[:3, 3] - centre)
+    weights = np.array([1.0, 0.1, 0.0])
+    moved, factor = slide_on_ray(far, T_wi, out, weights, CAMERA, config)
+    dt, dr = _errors(moved, T_a)
+    assert dt < 0.005 and dr < 1e-3, (dt, dr)
+    assert factor == pytest.approx(1 / 1.25, rel=0.01)
+    assert slide_on_ray(T_a, T_wi, out, weights, CAMERA, config) is None
+    assert slide_on_ray(far, T_wi, out, np.array([1.0, 1.0, 0.5]), CAMERA, config) is None
+    assert slide_on_ray(far, T_wi, out, weights, CAMERA, replace(config, ray_slide_share=None)) is None
+    # The truth 0.145 m away along the ray, beyond a 0.1 m reach: never moved more than the reach.
+    bounded = slide_on_ray(far, T_wi, out, weights, CAMERA, replace(config, ray_slide_max_shift=0.1))
+    assert bounded is None or np.linalg.norm(bounded[0][:3, 3] - far[:3, 3]) <= 0.1 + 1e-9
+    with pytest.raises(ValueError, match="ray_slide_share"):
+        VerifyConfig(ray_slide_share=0.0)

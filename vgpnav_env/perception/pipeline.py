@@ -88,6 +88,7 @@ from vgpnav_env.perception.verify import (
     round_rank,
     second_round_references,
     single_pair_fallback,
+    slide_on_ray,
     verify_pose,
 )
 from vgpnav_env.robot import CAMERA_HEIGHT, camera_T_wc
@@ -487,7 +488,8 @@ class Perceiver:
             return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground), None
         with clock.stage("verification"):
             T_wc, verdict = self._verify(loc, pose, prior)
-        if T_wc is not pose.T_wc:  # the prior picked a rival: its pose and points
+        rival = T_wc is not pose.T_wc
+        if rival:  # the prior picked a rival: its pose and points
             pose = replace(pose, T_wc=T_wc)
             points_w = self._metric_points(loc.backbone, T_wc, pose.scale.scale)
             picked = "the prior picked a rival pose"
@@ -512,6 +514,11 @@ class Perceiver:
                 loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
             )
             return lost, None
+        if not rival and pose.anchor is None:
+            with clock.stage("verification"):
+                slid = self._slide(loc, pose, prior, gate)
+            if slid is not None:
+                pose, verdict, points_w = slid
         result = PerceptionResult(
             status="localized",
             reason="",
@@ -534,6 +541,27 @@ class Perceiver:
             source=loc.source,
         )
         return result, points_w
+
+    def _slide(
+        self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None, gate: PoseGate | None
+    ) -> tuple[_MetricPose, Verdict, NDArray[np.float64]] | None:
+        """The verified ``pose`` moved along the ray its position rests on (:func:`slide_on_ray`),
+        its scale corrected by the same factor, with its verdict and metric points, when the images
+        verify it there (:meth:`_verify`, no rival taking its place) and the ``prior`` and the
+        ``gate`` admit it; else None."""
+        out = loc.backbone
+        T_wi = self.database.poses[loc.references]
+        moved = slide_on_ray(pose.T_wc, T_wi, out, loc.motion.weights, self.camera, self.config.verify)
+        if moved is None:
+            return None
+        T, factor = moved
+        if any(g is not None and not g.admits(T) for g in (prior, gate)):
+            return None
+        slid = replace(pose, T_wc=T, scale=replace(pose.scale, scale=pose.scale.scale * factor))
+        T_checked, verdict = self._verify(loc, slid, prior)
+        if T_checked is not T or not verdict.ok:
+            return None
+        return slid, verdict, self._metric_points(out, T, slid.scale.scale)
 
     def _verify(
         self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None = None
