@@ -8,7 +8,7 @@ from backbone_synthetic import corner_views, render
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, FeatureCache, make_backbone
-from vgpnav_env.perception.backbones.classical import link_scales, match_descriptors
+from vgpnav_env.perception.backbones.classical import link_scales, match_descriptors, sampson_distance
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 K_REFS = 5
@@ -242,6 +242,54 @@ def test_a_prior_recovers_a_pair_ransac_rejects(few_matches):
     # Ignoring expected poses (guided_min_inliers None) leaves the pair rejected.
     off = ClassicalBackbone(ClassicalConfig(guided_min_inliers=None))
     assert off.relative_pose(fq, fr, CAMERA, _perturbed(T_iq, 0.04, 2.0))[0] is None
+
+
+def _pitched(T_iq: np.ndarray, degrees: float) -> np.ndarray:
+    """``T_iq`` with the query camera pitched by ``degrees`` (about its own x axis)."""
+    c, s = np.cos(np.deg2rad(degrees)), np.sin(np.deg2rad(degrees))
+    pitch = np.eye(4)
+    pitch[1:3, 1:3] = [[c, -s], [s, c]]
+    return T_iq @ pitch
+
+
+def _moved_to(T: np.ndarray, t: np.ndarray) -> np.ndarray:
+    moved = T.copy()
+    moved[:3, 3] = t
+    return moved
+
+
+def test_stacked_poses_score_as_each_pose_alone(few_matches):
+    """``agrees`` and ``sampson_distance`` take a stack of poses (guided_pose scores its hypotheses at
+    once): each row is that pose's answer alone, and the agreement gates are the documented ones."""
+    fq, fr, T_iq = few_matches
+    backbone = ClassicalBackbone()
+    cases = {
+        "right": (T_iq, True),
+        "pitched 6 deg (under guided_max_pitch_deg 9)": (_pitched(T_iq, 6.0), True),
+        "pitched 12 deg": (_pitched(T_iq, 12.0), False),
+        "turned 5 deg (over guided_max_rotation_deg 3)": (_perturbed(T_iq, 0.0, 5.0), False),
+        "moved 0.6 m sideways": (_perturbed(T_iq, 0.6, 0.0), False),
+        "no translation": (_moved_to(T_iq, np.zeros(3)), False),
+    }
+    assert np.linalg.norm(T_iq[:3, 3]) > backbone.config.guided_position_m  # the direction counts
+    T_iqs = np.stack([T for T, _ in cases.values()])
+    Rs, ts = T_iqs[:, :3, :3], T_iqs[:, :3, 3]
+    agree = backbone.agrees(Rs, ts, T_iq)
+    assert agree.shape == (len(cases),)
+    assert agree.tolist() == [want for _, want in cases.values()], list(cases)
+    for k in range(len(cases)):
+        assert bool(backbone.agrees(Rs[k], ts[k], T_iq)) == agree[k]
+    matches = match_descriptors(fq.descriptors, fr.descriptors, 0.8, True)
+    K_inv = np.linalg.inv(CAMERA.K)
+    x_q = np.c_[fq.keypoints[matches[:, 0]], np.ones(len(matches))] @ K_inv.T
+    x_r = np.c_[fr.keypoints[matches[:, 1]], np.ones(len(matches))] @ K_inv.T
+    stacked = sampson_distance(x_q, x_r, Rs, ts)
+    assert stacked.shape == (len(cases), len(matches))
+    for k in range(len(cases)):
+        np.testing.assert_allclose(stacked[k], sampson_distance(x_q, x_r, Rs[k], ts[k]), rtol=1e-12)
+    # The true pose explains the matches (sub-pixel), a pose 5 deg off does not.
+    focal = CAMERA.K[0, 0]
+    assert np.median(focal * stacked[0]) < 0.5 < np.median(focal * stacked[3])
 
 
 @pytest.mark.parametrize(("metres", "degrees"), [(0.6, 15.0), (0.0, 25.0), (1.0, 0.0)])

@@ -36,7 +36,9 @@ method and its confidence).
 Speed: the pairs and the sweep's plane chunks run on ``ClassicalConfig.threads`` threads (OpenCV,
 poselib and numpy release the GIL; results do not depend on the count); a query image's RootSIFT
 is extracted once per process (:func:`rootsift`, shared with the VLAD retrieval) and the two-view
-results of its keyed pairs are kept for a second call on the same image.
+results of its keyed pairs are kept for a second call on the same image. A pair's homography
+(planarity) is fitted only for a pair that passes or a guided pose that may (same result), and a
+guided pair's ~10^2-10^3 hypotheses are tested and scored as one stack.
 """
 
 from __future__ import annotations
@@ -295,12 +297,24 @@ def _pitch_rotation(angle: float) -> NDArray[np.float64]:
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
-def _pitch_and_rest(R: NDArray[np.float64]) -> tuple[float, float]:
-    """Swing-twist split of a camera-frame rotation: its twist about the x axis (radians, signed: a
-    pitch change) and the angle of the remaining swing (radians)."""
-    x, _, _, w = Rotation.from_matrix(R).as_quat()
+def _pitch_and_rest(R: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Swing-twist split of camera-frame rotations (..., 3, 3): their twist about the x axis
+    (radians, signed: a pitch change) and the angle of the remaining swing (radians), shape (...)."""
+    quat = Rotation.from_matrix(np.reshape(R, (-1, 3, 3))).as_quat()
+    x, w = quat[:, 0], quat[:, 3]
     twist = 2.0 * np.arctan2(x, w)
-    return float(np.arctan2(np.sin(twist), np.cos(twist))), float(2.0 * np.arccos(min(1.0, np.hypot(x, w))))
+    pitch = np.arctan2(np.sin(twist), np.cos(twist))
+    rest = 2.0 * np.arccos(np.minimum(1.0, np.hypot(x, w)))
+    shape = np.shape(R)[:-2]
+    return pitch.reshape(shape), rest.reshape(shape)
+
+
+def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``np.cross`` of 3-vectors along the last axis (broadcast), the same products and differences
+    without its per-call axis handling (these run thousands of times per frame on short arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def sampson_distance(
@@ -308,13 +322,22 @@ def sampson_distance(
 ) -> NDArray[np.float64]:
     """Sampson distance (normalised image units: times the focal length, pixels) of normalised ray
     pairs (n, 3) ``(x, y, 1)`` to the epipolar geometry of ``x_r ~ R x_q d + t`` (E = [t]x R; any
-    nonzero length of ``t``); nan where undefined."""
-    Ex_q = np.cross(t, x_q @ R.T)
-    Etx_r = np.cross(x_r, t) @ R
-    num = np.einsum("ij,ij->i", x_r, Ex_q)
-    den = Ex_q[:, 0] ** 2 + Ex_q[:, 1] ** 2 + Etx_r[:, 0] ** 2 + Etx_r[:, 1] ** 2
+    nonzero length of ``t``); nan where undefined. ``R`` (..., 3, 3) and ``t`` (..., 3) may stack
+    several poses: the distances are then (..., n), one row per pose."""
+    t = np.asarray(t)[..., None, :]
+    Ex_q = _cross(t, x_q @ np.swapaxes(R, -1, -2))
+    Etx_r = _cross(x_r, t) @ R
+    num = np.einsum("...ij,...ij->...i", x_r, Ex_q)
+    den = Ex_q[..., 0] ** 2 + Ex_q[..., 1] ** 2 + Etx_r[..., 0] ** 2 + Etx_r[..., 1] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.abs(num) / np.sqrt(den)
+
+
+def _on_plane(pq: NDArray[np.floating], pr: NDArray[np.floating], threshold: float) -> NDArray[np.bool_]:
+    """(m,) the matches one homography explains (RANSAC, ``threshold`` pixels): a dominant plane,
+    which leaves the 5-point pose ambiguous."""
+    _, mask = cv2.findHomography(pq, pr, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
+    return mask.ravel().astype(bool) if mask is not None else np.zeros(len(pq), bool)
 
 
 @dataclass(frozen=True)
@@ -364,8 +387,8 @@ def triangulate_query_depth(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Query z-depth, parallax (radians) and cheirality of normalised rays (n, 3), ``x_r ~ R x_q d + t``."""
     Rx = x_q @ R.T
-    a = np.cross(x_r, Rx)
-    b = np.cross(x_r, np.broadcast_to(t, x_r.shape))
+    a = _cross(x_r, Rx)
+    b = _cross(x_r, np.broadcast_to(t, x_r.shape))
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = -np.einsum("ij,ij->i", a, b) / np.einsum("ij,ij->i", a, a)
     X = x_q * depth[:, None]
@@ -533,23 +556,19 @@ class ClassicalBackbone(Backbone):
         R, t = np.asarray(pose.R), np.asarray(pose.t)
         inliers = np.asarray(info["inliers"], bool)
         accepted = int(inliers.sum()) >= cfg.min_inliers
-        # Matches explained by one homography (a dominant plane) leave the 5-point pose ambiguous.
-        _, h_mask = cv2.findHomography(
-            pq, pr, cv2.RANSAC, cfg.homography_threshold, maxIters=500, confidence=0.99
-        )
-        on_plane = h_mask.ravel().astype(bool) if h_mask is not None else np.zeros(len(pq), bool)
         trust = 1.0
+        on_plane = None
         if guided and not accepted:
             found = self.guided_pose(pq, pr, camera, expected_T_iq, candidates=[(R, t)])
-            if (
-                found is not None
-                and found[2].sum() >= cfg.guided_min_share * inliers.sum()
-                and (found[2] & ~on_plane).sum() >= cfg.guided_min_off_plane
-            ):
-                (R, t, inliers), accepted, trust = found, True, cfg.guided_confidence_factor
+            if found is not None and found[2].sum() >= cfg.guided_min_share * inliers.sum():
+                on_plane = _on_plane(pq, pr, cfg.homography_threshold)
+                if (found[2] & ~on_plane).sum() >= cfg.guided_min_off_plane:
+                    (R, t, inliers), accepted, trust = found, True, cfg.guided_confidence_factor
         n_inliers = int(inliers.sum())
         if not accepted:
             return None, n_inliers, pixels
+        if on_plane is None:
+            on_plane = _on_plane(pq, pr, cfg.homography_threshold)
         t = t / np.linalg.norm(t)
         K_inv = np.linalg.inv(camera.K)
         x_q = np.c_[pq[inliers], np.ones(n_inliers)] @ K_inv.T
@@ -577,25 +596,27 @@ class ClassicalBackbone(Backbone):
 
     def agrees(
         self, R: NDArray[np.float64], t: NDArray[np.float64], expected_T_iq: NDArray[np.float64]
-    ) -> bool:
-        """Whether the relative pose ``x_ref = R x_query + t`` (any length of ``t``) agrees with the
-        expected ``T_iq`` (4, 4, metric): the query camera's rotation off the expected one about its
-        own x axis (its pitch: a planar state estimate does not know it) within
-        ``guided_max_pitch_deg``, the rest within ``guided_max_rotation_deg``; the translation
-        direction within asin(``guided_position_m`` / baseline) (at least
-        ``guided_min_direction_deg``; any direction when the baseline is under ``guided_position_m``)."""
+    ) -> NDArray[np.bool_]:
+        """Whether the relative poses ``x_ref = R x_query + t`` (``R`` (..., 3, 3), ``t`` (..., 3),
+        any length of ``t``) agree with the expected ``T_iq`` (4, 4, metric), shape (...): the query
+        camera's rotation off the expected one about its own x axis (its pitch: a planar state
+        estimate does not know it) within ``guided_max_pitch_deg``, the rest within
+        ``guided_max_rotation_deg``; the translation direction within asin(``guided_position_m`` /
+        baseline) (at least ``guided_min_direction_deg``; any direction when the baseline is under
+        ``guided_position_m``)."""
         cfg = self.config
         pitch, rest = _pitch_and_rest(expected_T_iq[:3, :3].T @ R)
-        if abs(pitch) > np.deg2rad(cfg.guided_max_pitch_deg) or rest > np.deg2rad(
-            cfg.guided_max_rotation_deg
-        ):
-            return False
+        rotation = (np.abs(pitch) <= np.deg2rad(cfg.guided_max_pitch_deg)) & (
+            rest <= np.deg2rad(cfg.guided_max_rotation_deg)
+        )
         t0 = expected_T_iq[:3, 3]
-        baseline, length = float(np.linalg.norm(t0)), float(np.linalg.norm(t))
-        if baseline <= cfg.guided_position_m or length == 0:
-            return baseline <= cfg.guided_position_m
+        baseline, length = float(np.linalg.norm(t0)), np.linalg.norm(t, axis=-1)
+        if baseline <= cfg.guided_position_m:
+            return rotation
         limit = max(np.deg2rad(cfg.guided_min_direction_deg), np.arcsin(cfg.guided_position_m / baseline))
-        return bool(np.arccos(np.clip(float(t @ t0) / (baseline * length), -1.0, 1.0)) <= limit)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cos = np.clip((t @ t0) / (baseline * length), -1.0, 1.0)
+        return rotation & (length > 0) & (np.arccos(cos) <= limit)
 
     def guided_pose(
         self,
@@ -612,7 +633,8 @@ class ClassicalBackbone(Backbone):
         (poselib's Cauchy-robust refinement on the matches within each band of ``guided_bands_px``
         around the current pose), and ``guided_iterations`` 5-point samples (seeded: deterministic)
         of the matches within the widest band around the expected pose; the best is refined on its
-        inliers (kept if it loses no inliers and still agrees)."""
+        inliers (kept if it loses no inliers and still agrees). All hypotheses are tested and scored at
+        once (stacked :meth:`agrees` and :func:`sampson_distance`); ties go to the earliest."""
         cfg = self.config
         K_inv = np.linalg.inv(camera.K)
         focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
@@ -656,15 +678,17 @@ class ClassicalBackbone(Backbone):
                 for _ in range(cfg.guided_iterations):
                     sample = rng.choice(pool, 5, replace=False)
                     poses += [(p.R, p.t) for p in poselib.relpose_5pt(rays_q[sample], rays_r[sample])]
-        best = None
-        for R, t in poses:
-            R, t = np.asarray(R), np.asarray(t)
-            if not self.agrees(R, t, expected_T_iq):
-                continue
-            mask = inliers(R, t)
-            if best is None or mask.sum() > best[2].sum():
-                best = (R, t, mask)
-        if best is None or best[2].sum() < 5:
+        if not poses:
+            return None
+        Rs = np.array([np.asarray(R) for R, _ in poses])
+        ts = np.array([np.asarray(t) for _, t in poses])
+        agreeing = np.flatnonzero(self.agrees(Rs, ts, expected_T_iq))
+        if len(agreeing) == 0:
+            return None
+        masks = inliers(Rs[agreeing], ts[agreeing])
+        first = int(np.argmax(masks.sum(axis=1)))  # the first of the poses with most inliers
+        best = (Rs[agreeing[first]], ts[agreeing[first]], masks[first])
+        if best[2].sum() < 5:
             return None
         pose = poselib.CameraPose()
         pose.R, pose.t = best[0], best[1]
