@@ -486,7 +486,9 @@ def _temporal_task(
     :func:`~vgpnav_env.perception.odometry.fuse_motion`); while it is certain the perceiver tracks
     (references around the predicted camera), its :meth:`~EKFState.prior` goes to the perceiver,
     and it takes in the perceived poses
-    (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.measurement`). The ground is anchored
+    (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.measurement`) with their verifier
+    confidence, as the env's wrapper does (one fix scoring ``EKFConfig.init_score`` starts the first
+    estimate alone, instead of waiting for a second fix from another view). The ground is anchored
     on the first frame standing still, as in paper mode. A record's ``cpu`` timing
     includes the odometry's (``odometry_cpu``)."""
     config, frames, max_depth, max_points, visual_odometry = item
@@ -521,7 +523,7 @@ def _temporal_task(
         T_pred = None if predicted is None else camera_T_wc(predicted, height, pitch)
         frame = state.perceive(perceiver, i, max_depth, max_points, predicted=T_pred, prior=ekf.prior())
         measured = frame.result.measurement
-        ekf.correct(None if measured is None else base_pose(measured))
+        ekf.correct(None if measured is None else base_pose(measured), frame.result.confidence)
         error = float(np.linalg.norm(ekf.estimate[:2] - truth[n, :2])) if ekf.has_estimate else float("nan")
         timings = frame.record.timings | {"cpu": frame.record.timings["cpu"] + vo_cpu, "odometry_cpu": vo_cpu}
         record = replace(

@@ -20,6 +20,7 @@ from vgpnav_env.perception.motion_averaging import MotionAveragingConfig
 from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, TIMING_KEYS, Perceiver, PerceptionConfig, perceive
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex, select_references
+from vgpnav_env.perception.scale_recovery import GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import PoseGate, VerifyConfig
 from vgpnav_env.robot import base_pose
 from vgpnav_env.runs import load_run, load_run_depth
@@ -615,3 +616,32 @@ def test_only_a_verified_pose_anchors_the_ground(database: Database, query) -> N
     result = perceiver.perceive(run.images[2], priv[2])
     assert result.localized and perceiver.initialized, result.detail
     assert abs(perceiver.anchor.z_ground) < 0.01  # the floor, not 0.5 m above it
+
+
+def test_a_pose_the_rays_place_stands_without_a_scale_and_maps_nothing(
+    database: Database, query, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No ground peak and no ray-implied scale (home's temporal frames 22 and 166, 0.06 and 0.01 m
+    off, were lost for it): the pose motion averaging triangulated from the references' metric
+    poses is verified like any other and localized without points (scale "none"); a single pair's
+    pose, which only the ground's scale places along its ray, stays lost ("no ground")."""
+    run, depth = query
+    i = 2
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    perceiver = Perceiver(database, make_backbone("simulated", seed=3), config=config)
+    perceiver.initialize(run.images[:1], [Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0])])
+    unscaled = (ScaleEstimate(float("nan"), "none"), GroundEstimate(float("nan"), 0.0, False))
+    monkeypatch.setattr(Perceiver, "_ground_scale", lambda self, loc, T_wc, anchor: unscaled)
+    monkeypatch.setattr(Perceiver, "_ground", lambda self, out, T_wc, prior: unscaled[1])
+    result = perceiver.perceive(run.images[i], priv)
+    assert result.localized and result.verdict.ok and not result.prior_placed, result.detail
+    assert result.scale_source == "none" and np.isnan(result.scale) and len(result.points_w) == 0
+    assert "no ground peak" in result.detail
+    dt, dr = errors(result.T_wc, run.poses[i])
+    assert dt < 0.01 and dr < 0.1
+    single = replace(config, verify=VerifyConfig(min_supporting_references=1))
+    one = Perceiver(database, _one_pair(seed=0), config=single)
+    one.anchor = perceiver.anchor
+    lost = one.perceive(run.images[i], priv)
+    assert lost.status == "lost" and lost.reason == "no ground", lost.detail

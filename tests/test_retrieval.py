@@ -11,13 +11,16 @@ from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, 
 from vgpnav_env.perception.backbones.classical import detect_sift
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
+    TrackingConfig,
     VladConfig,
     VladIndex,
     geometric_median,
     geometric_rerank,
     nearby_cameras,
+    overlapping_cameras,
     pose_guided_references,
     select_references,
+    tracked_references,
 )
 
 STEP = 40  # pixels between database crops of the panorama
@@ -260,3 +263,40 @@ def test_pose_guided_references_rank_nearby_cameras_looking_the_same_way() -> No
     np.testing.assert_allclose(near.cos_angle, [1.0, 1.0, np.cos(np.deg2rad(20.0))])
     assert nearby_cameras(poses, first, 1.5, 35.0, min_distance=0.5).index.tolist() == [1]
     assert nearby_cameras(poses, first, 1.5, 19.0).index.tolist() == [0, 1]
+
+
+def test_tracking_without_near_cameras_takes_those_that_see_the_predicted_view() -> None:
+    """A predicted pose with no database camera within 2 m / 45 deg (home:2's frames 21-24): the
+    cameras within 4 m whose images hold the predicted view join the pool; one 3 m behind looking
+    the same way sees it, one beside it facing away, one 3 m ahead looking back and one 6 m behind
+    do not (angle, overlap, distance)."""
+    h = 1.2
+    predicted = camera_pose([0.0, 0.0, h], 0.0, 0.0)
+    poses = np.stack(
+        [
+            camera_pose([-3.0, 0.0, h], 0.0, 0.0),  # 3 m behind, same heading: sees the view
+            camera_pose([-2.8, 0.4, h], np.deg2rad(-10.0), 0.0),  # 2.8 m behind, 10 deg: sees it
+            camera_pose([-2.9, -0.3, h], np.deg2rad(15.0), 0.0),  # likewise
+            camera_pose([0.5, 0.5, h], np.deg2rad(120.0), 0.0),  # near, facing away: angle
+            camera_pose([3.0, 0.0, h], np.pi, 0.0),  # ahead, looking back: angle
+            camera_pose([-6.0, 0.0, h], 0.0, 0.0),  # too far
+            camera_pose([-1.0, 3.5, h], 0.0, 0.0),  # 3.6 m aside, same heading: sees little of it
+        ]
+    )
+    config = TrackingConfig()
+    assert len(nearby_cameras(poses, predicted, config.radius, config.max_angle_deg).index) == 0
+    got = overlapping_cameras(
+        poses, predicted, CAMERA, 4.0, 45.0, config.overlap_depths_m, config.min_overlap
+    )
+    assert got.tolist() == [0, 1, 2]
+    sims = np.linspace(1.0, 0.5, len(poses))
+    refs = tracked_references(sims, poses, predicted, RetrievalConfig(k=3), config, CAMERA)
+    assert set(refs.tolist()) <= {0, 1, 2} and refs[0] == 0 and len(refs) >= 2  # Alg. 1 over the pool
+    # Without the camera model (or too few overlapping cameras): none, the caller relocalizes.
+    assert len(tracked_references(sims, poses, predicted, RetrievalConfig(k=3), config)) == 0
+    assert (
+        len(tracked_references(sims, poses[[0, 1, 3, 4, 5]], predicted, RetrievalConfig(k=3), config, CAMERA))
+        == 0
+    )
+    with pytest.raises(ValueError, match="overlap"):
+        TrackingConfig(overlap_radius=1.0)

@@ -175,8 +175,9 @@ class PerceptionResult:
     estimated (a pose rejected afterwards is kept for inspection). ``points_w`` (N, 3) float32
     metric world points of the query (confident, subsampled pixels; empty when lost) and their
     ``classes`` (free ground / obstacle masks). ``references``: database indices used, best
-    match first. ``scale``: metres per backbone unit (nan when lost) and ``scale_source``
-    (ground | fallback | disabled | none). ``z_ground``: anchored floor height (W, metres).
+    match first. ``scale``: metres per backbone unit (nan when lost, or localized without a scale:
+    then no points) and ``scale_source`` (ground | fallback | disabled | none). ``z_ground``:
+    anchored floor height (W, metres).
     ``timings``: wall seconds per stage (:data:`TIMING_KEYS`) and ``cpu``: the process's CPU
     seconds for the whole call (all threads; less sensitive than wall time to other processes
     sharing the cores). ``detail`` says why a frame was lost, or which second chance placed it.
@@ -483,7 +484,7 @@ class Perceiver:
             return _lost(loc, clock), None
         with clock.stage("scale_recovery"):  # stage 4
             loc, pose = self._recover_scale(loc, gate)
-            points_w = self._metric_points(loc.backbone, pose.T_wc, pose.scale.scale) if loc.ok else None
+            points_w = self._points(loc, pose.T_wc, pose.scale) if loc.ok else None
         if not loc.ok:
             return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground), None
         with clock.stage("verification"):
@@ -491,7 +492,7 @@ class Perceiver:
         rival = T_wc is not pose.T_wc
         if rival:  # the prior picked a rival: its pose and points
             pose = replace(pose, T_wc=T_wc)
-            points_w = self._metric_points(loc.backbone, T_wc, pose.scale.scale)
+            points_w = self._points(loc, T_wc, pose.scale)
             picked = "the prior picked a rival pose"
             loc = replace(loc, detail=f"{picked} ({loc.detail})" if loc.detail else picked)
         if verdict.ok and prior is not None and not prior.admits(pose.T_wc):
@@ -561,7 +562,7 @@ class Perceiver:
         T_checked, verdict = self._verify(loc, slid, prior)
         if T_checked is not T or not verdict.ok:
             return None
-        return slid, verdict, self._metric_points(out, T, slid.scale.scale)
+        return slid, verdict, self._points(loc, T, slid.scale)
 
     def _verify(
         self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None = None
@@ -627,7 +628,7 @@ class Perceiver:
         with clock.stage("retrieval"):
             sims = np.nan_to_num(db.index.similarity(rgb), nan=-1.0, posinf=-1.0, neginf=-1.0)
             if predicted is not None:
-                refs = tracked_references(sims, db.poses, predicted, cfg.retrieval, cfg.tracking)
+                refs = tracked_references(sims, db.poses, predicted, cfg.retrieval, cfg.tracking, self.camera)
                 source = "tracking"
             else:
                 if cfg.retrieval.rerank:
@@ -839,8 +840,10 @@ class Perceiver:
 
     def _recover_scale(self, loc: _Localization, gate: PoseGate | None) -> tuple[_Localization, _MetricPose]:
         """Stage 4: the metric pose and scale of a localized frame, and ``loc`` (lost when the pose
-        is outside ``gate`` or no scale is found). Without an anchor, the pose anchors the ground
-        provisionally (the returned pose's ``anchor``; :meth:`_attempt` keeps it once verified)."""
+        is outside ``gate``, its scale implausible, or a single pair's pose has no ground scale; a
+        pose the rays placed stands without any scale: scale "none", no points). Without an anchor,
+        the pose anchors the ground provisionally (the returned pose's ``anchor``; :meth:`_attempt`
+        keeps it once verified)."""
         single = loc.motion.reason == "single reference" and self.config.scale.enabled
         T_wc, scale, ground = self._place_single(loc) if single else (loc.motion.T_wq, None, None)
         if gate is not None and not gate.admits(T_wc):
@@ -861,6 +864,12 @@ class Perceiver:
         scale = plausible_scale(scale, self._median_depth(loc.backbone), self.config.verify)
         z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")
         pose = _MetricPose(T_wc, scale, ground, z_ground, provisional)
+        if not found.ok and not single:
+            # The rays placed the pose in metres (the references' known poses); only the depth has no
+            # scale: verification judges the pose, and it maps nothing (home's temporal run: frames
+            # 22 and 166, 0.06 and 0.01 m off, were lost as "no ground").
+            detail = "no ground peak and no ray-implied scale: no points"
+            return replace(loc, detail=f"{detail} ({loc.detail})" if loc.detail else detail), pose
         if not scale.ok:
             detail = (
                 f"{found.source} scale {found.scale:.3g} m per unit puts the median depth nearer "
@@ -934,6 +943,12 @@ class Perceiver:
         depth = out.query_depth[(out.query_depth_confidence >= self.config.occupancy.min_confidence)]
         depth = depth[np.isfinite(depth) & (depth > 0)]
         return float(np.median(depth)) if len(depth) else float("nan")
+
+    def _points(
+        self, loc: _Localization, T_wc: NDArray[np.float64], scale: ScaleEstimate
+    ) -> NDArray[np.float64]:
+        """The metric points of a localized frame at ``T_wc``: none without a ``scale``."""
+        return self._metric_points(loc.backbone, T_wc, scale.scale) if scale.ok else np.zeros((0, 3))
 
     def _metric_points(
         self, out: BackboneOutput, T_wc: NDArray[np.float64], scale: float
