@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from tiny_build import QUERY_HEIGHT
 
 import vgpnav_env.perception.database as database_module
+import vgpnav_env.perception.pipeline as pipeline_module
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
@@ -481,6 +482,31 @@ def test_a_pose_only_the_prior_verifies_is_marked_prior_placed(database: Databas
     assert alone.status == "lost" and alone.verdict.check == "support"
     placed = _simulated_perceiver(database, query, strict)[0].perceive(run.images[2], priv[2], prior=prior)
     assert placed.localized and placed.prior_placed and errors(placed.T_wc, T)[0] < 0.01
+
+
+def test_a_pose_slides_along_its_ray_only_inside_a_prior(
+    database: Database, query, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The slide along a pair's ray (:func:`slide_on_ray`) is tried only when the EKF's prior can
+    bound it: on home:2's paper run it moved frame 57 from 0.47 to 0.75 m off. Without a prior the
+    verified pose stands as averaged, even when a slide is on offer; inside a prior it is tried."""
+    run, _ = query
+    T = run.poses[2]
+    offered: list[np.ndarray] = []
+
+    def slide(T_wq: np.ndarray, *args) -> tuple[np.ndarray, float]:
+        offered.append(T_wq)
+        moved = T_wq.copy()
+        moved[0, 3] += 0.02
+        return moved, 1.0
+
+    monkeypatch.setattr(pipeline_module, "slide_on_ray", slide)
+    perceiver, priv = _simulated_perceiver(database, query)
+    alone = perceiver.perceive(run.images[2], priv[2])
+    assert alone.localized and not offered and errors(alone.T_wc, T)[0] < 0.005
+    prior = PoseGate(base_pose(T), 0.3, np.radians(10.0))
+    inside = perceiver.perceive(run.images[2], priv[2], prior=prior)
+    assert inside.localized and len(offered) == 1
 
 
 def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_only_if_verified(

@@ -515,7 +515,7 @@ class Perceiver:
                 loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
             )
             return lost, None
-        if not rival and pose.anchor is None:
+        if not rival and pose.anchor is None and prior is not None:
             with clock.stage("verification"):
                 slid = self._slide(loc, pose, prior, gate)
             if slid is not None:
@@ -546,7 +546,9 @@ class Perceiver:
     def _slide(
         self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None, gate: PoseGate | None
     ) -> tuple[_MetricPose, Verdict, NDArray[np.float64]] | None:
-        """The verified ``pose`` moved along the ray its position rests on (:func:`slide_on_ray`),
+        """The verified ``pose`` moved along the ray its position rests on (:func:`slide_on_ray`;
+        the caller tries it only inside the EKF's ``prior``, which bounds the move: without one, on
+        home:2's paper run, it moved a pose 0.47 -> 0.75 m off),
         its scale corrected by the same factor, with its verdict and metric points, when the images
         verify it there (:meth:`_verify`, no rival taking its place) and the ``prior`` and the
         ``gate`` admit it; else None."""
