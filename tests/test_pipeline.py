@@ -489,7 +489,8 @@ def test_a_pose_slides_along_its_ray_only_inside_a_prior(
 ) -> None:
     """The slide along a pair's ray (:func:`slide_on_ray`) is tried only when the EKF's prior can
     bound it: on home:2's paper run it moved frame 57 from 0.47 to 0.75 m off. Without a prior the
-    verified pose stands as averaged, even when a slide is on offer; inside a prior it is tried."""
+    verified pose stands as averaged, even when a slide is on offer; inside a prior the verified
+    slid pose is the result."""
     run, _ = query
     T = run.poses[2]
     offered: list[np.ndarray] = []
@@ -497,7 +498,7 @@ def test_a_pose_slides_along_its_ray_only_inside_a_prior(
     def slide(T_wq: np.ndarray, *args) -> tuple[np.ndarray, float]:
         offered.append(T_wq)
         moved = T_wq.copy()
-        moved[0, 3] += 0.02
+        moved[0, 3] += 0.005
         return moved, 1.0
 
     monkeypatch.setattr(pipeline_module, "slide_on_ray", slide)
@@ -507,6 +508,7 @@ def test_a_pose_slides_along_its_ray_only_inside_a_prior(
     prior = PoseGate(base_pose(T), 0.3, np.radians(10.0))
     inside = perceiver.perceive(run.images[2], priv[2], prior=prior)
     assert inside.localized and len(offered) == 1
+    np.testing.assert_allclose(inside.T_wc[:3, 3], offered[0][:3, 3] + [0.005, 0.0, 0.0], atol=1e-9)
 
 
 def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_only_if_verified(

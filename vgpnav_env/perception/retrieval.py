@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from tqdm import tqdm
 
 from vgpnav_env.atomic import atomic_write
-from vgpnav_env.geometry import PinholeCamera, invert_pose
+from vgpnav_env.geometry import PinholeCamera, transform_points
 from vgpnav_env.perception.backbones.classical import (
     ClassicalConfig,
     Features,
@@ -685,27 +685,21 @@ def overlapping_cameras(
     """The :func:`nearby_cameras` of the pose ``T`` (4, 4) among ``T_w`` (M, 4, 4) (``max_distance``
     metres, ``max_angle_deg``) whose image holds at least ``min_overlap`` of ``T``'s view (both of
     the same ``camera``; features rarely match across a wider angle): ``T``'s
-    view is sampled at a ``grid`` (columns, rows) of pixels, each at every depth of ``depths_m``
+    view is sampled at a ``grid`` (columns, rows) of pixel centres, each at every depth of ``depths_m``
     (metres; the scene's depth is unknown), and a sample counts when it lies in front of the
     camera and inside its image. Occlusion is not modelled (a camera behind a wall may count).
     Indices ascending."""
     T_w, T = np.asarray(T_w, float), np.asarray(T, float)
     near = nearby_cameras(T_w, T, max_distance, max_angle_deg).index
-    if len(near) == 0:
-        return near.astype(np.int64)
-    K_inv = np.linalg.inv(camera.K)
-    u = (np.arange(grid[0]) + 0.5) * camera.width / grid[0]
-    v = (np.arange(grid[1]) + 0.5) * camera.height / grid[1]
-    pixels = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
-    rays = np.c_[pixels, np.ones(len(pixels))] @ K_inv.T
-    points_c = np.concatenate([rays * d for d in depths_m])
-    points_w = points_c @ T[:3, :3].T + T[:3, 3]
-    T_iw = invert_pose(T_w[near])
-    P = np.einsum("mij,nj->mni", T_iw[:, :3, :3], points_w) + T_iw[:, None, :3, 3]
-    uv, z = camera.project(P)
-    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
-    inside &= (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1)
-    return near[inside.mean(axis=1) >= min_overlap].astype(np.int64)
+    su, sv = max(camera.width // grid[0], 1), max(camera.height // grid[1], 1)
+    rays = camera.rays()[sv // 2 :: sv, su // 2 :: su].reshape(-1, 3)
+    points_w = transform_points(T, np.concatenate([rays * d for d in depths_m]))
+    seen = []
+    for T_wi in T_w[near]:
+        uv, z = camera.project_world(T_wi, points_w)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1)
+        seen.append(np.mean(inside & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1)))
+    return near[np.asarray(seen) >= min_overlap].astype(np.int64)
 
 
 def pose_guided_references(

@@ -138,7 +138,9 @@ class VerifyConfig:
     ``ray_slide_share``, ``ray_slide_gain``, ``ray_slide_max_shift``: a verified pose whose
     position one pair's ray carries (at least this share of the translation weights) is moved
     along that ray, at most ``ray_slide_max_shift`` metres, to where the other references explain
-    ``ray_slide_gain`` more matches (:func:`slide_on_ray`; None = never). Offline on the stored
+    ``ray_slide_gain`` more matches (:func:`slide_on_ray`; None = never); the Perceiver tries it
+    only inside the EKF's prior, which bounds the move (without one, in paper mode, it moved
+    home:2's frame 57 from 0.47 to 0.75 m off). Offline on the stored
     poses of home's temporal run (2e04151, all 184 queries): 6 moved 1-28 cm, within 5 cm / 5 deg
     170 -> 174, none moved farther from the truth, 0.014 CPU-s per localized frame.
     """
