@@ -290,13 +290,10 @@ def test_tracking_without_near_cameras_takes_those_that_see_the_predicted_view()
     )
     assert got.tolist() == [0, 1, 2]
     sims = np.linspace(1.0, 0.5, len(poses))
-    refs = tracked_references(sims, poses, predicted, RetrievalConfig(k=3), config, CAMERA)
+    refs = tracked_references(sims, poses, predicted, CAMERA, RetrievalConfig(k=3), config)
     assert set(refs.tolist()) <= {0, 1, 2} and refs[0] == 0 and len(refs) >= 2  # Alg. 1 over the pool
-    # Without the camera model (or too few overlapping cameras): none, the caller relocalizes.
-    assert len(tracked_references(sims, poses, predicted, RetrievalConfig(k=3), config)) == 0
-    assert (
-        len(tracked_references(sims, poses[[0, 1, 3, 4, 5]], predicted, RetrievalConfig(k=3), config, CAMERA))
-        == 0
-    )
+    # Too few overlapping cameras: none, the caller relocalizes.
+    few = poses[[0, 1, 3, 4, 5]]
+    assert len(tracked_references(sims[:5], few, predicted, CAMERA, RetrievalConfig(k=3), config)) == 0
     with pytest.raises(ValueError, match="overlap"):
         TrackingConfig(overlap_radius=1.0)

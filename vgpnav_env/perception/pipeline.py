@@ -630,7 +630,7 @@ class Perceiver:
         with clock.stage("retrieval"):
             sims = np.nan_to_num(db.index.similarity(rgb), nan=-1.0, posinf=-1.0, neginf=-1.0)
             if predicted is not None:
-                refs = tracked_references(sims, db.poses, predicted, cfg.retrieval, cfg.tracking, self.camera)
+                refs = tracked_references(sims, db.poses, predicted, self.camera, cfg.retrieval, cfg.tracking)
                 source = "tracking"
             else:
                 if cfg.retrieval.rerank:

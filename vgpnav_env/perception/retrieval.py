@@ -624,19 +624,19 @@ def tracked_references(
     similarity: ArrayLike,
     T_w: ArrayLike,
     predicted: ArrayLike,
+    camera: PinholeCamera,
     config: RetrievalConfig | None = None,
     tracking: TrackingConfig | None = None,
-    camera: PinholeCamera | None = None,
 ) -> NDArray[np.int64]:
     """:func:`select_references` restricted to the database cameras near the ``predicted`` camera
     pose ``T_wc`` (4, 4): tracking picks references around the pose a state estimator predicts
     instead of the whole database. Fewer than ``tracking.min_candidates`` near: with them, those
-    whose view overlaps the predicted one (:func:`overlapping_cameras`, needs the ``camera``;
-    without it, or still fewer: empty)."""
+    whose view through ``camera`` overlaps the predicted one (:func:`overlapping_cameras`); still
+    fewer: empty."""
     tracking = tracking or TrackingConfig()
     T = np.asarray(T_w, float)
     near = nearby_cameras(T, predicted, tracking.radius, tracking.max_angle_deg).index
-    if len(near) < tracking.min_candidates and camera is not None:
+    if len(near) < tracking.min_candidates:
         overlap = overlapping_cameras(
             T, predicted, camera, tracking.overlap_radius, tracking.max_angle_deg,
             tracking.overlap_depths_m, tracking.min_overlap,
