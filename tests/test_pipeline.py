@@ -551,6 +551,44 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
     assert simulated.perceive(run.images[i], priv[1], prior=prior).status == "lost"
 
 
+def test_a_pose_placed_inside_a_tight_prior_needs_less_support_than_inside_a_wide_one(
+    database: Database, query
+) -> None:
+    """A pose placed inside the prior (:meth:`Perceiver._place_on_prior`) whose references explain
+    fewer matches than the floor without a prior is kept when the prior is tight enough
+    (:func:`prior_support_floor`: ``prior_support_per_m`` per metre of its radius; home:2's frame 28
+    on the temporal run, 0.021 m off with 109 matches inside a 0.23 m prior); never without the
+    scaled floor, nor inside a prior in the wrong place."""
+    run, depth = query
+    i, T = 2, run.poses[2]
+    priv = [Privileged(run.poses[j], np.zeros((0, 4, 4)), depth[j]) for j in (0, i)]
+    classical = make_backbone("classical", database=database)
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    anchored = Perceiver(database, classical, config=config)
+    anchored.initialize(run.images[0], priv[0])
+    failing = VerifyConfig(single_fallback_confidence=None)
+    prior = PoseGate(base_pose(T) + [0.06, -0.04, np.radians(3.0)], 0.25, np.radians(9.0))
+
+    def perceiver(verify: VerifyConfig) -> Perceiver:
+        averaging = MotionAveragingConfig(min_consensus=100)
+        p = Perceiver(database, classical, config=replace(config, averaging=averaging, verify=verify))
+        p.reset(anchored.anchor)
+        return p
+
+    strength = perceiver(failing).perceive(run.images[i], priv[1], prior=prior).verdict.strength
+    # The floor without a prior just above the placed pose's support: it fails that alone.
+    strict = replace(failing, min_total_support=strength + 1, prior_support_per_m=None)
+    lost = perceiver(strict).perceive(run.images[i], priv[1], prior=prior)
+    assert lost.status == "lost" and not lost.prior_placed, lost.detail
+    tight = replace(strict, prior_support_per_m=strength / 0.3)  # floor 0.83 x strength at 0.25 m
+    placed = perceiver(tight).perceive(run.images[i], priv[1], prior=prior)
+    assert placed.localized and placed.prior_placed and "placed inside the prior" in placed.detail
+    dt, dr = errors(placed.T_wc, T)
+    assert dt < 0.05 and dr < 1.0, (dt, dr)
+    away = PoseGate(base_pose(T) + [1.0, 0.0, 0.0], 0.25, np.radians(9.0))
+    assert perceiver(tight).perceive(run.images[i], priv[1], prior=away).status == "lost"
+
+
 def test_a_global_attempt_lost_with_a_prior_is_retried_around_the_prior(database: Database, query) -> None:
     """Temporal mode: a frame whose globally retrieved references all fail (both rounds) is lost
     without a prior; with a certain prior it is retried with references around the prior's pose,

@@ -26,6 +26,7 @@ from vgpnav_env.perception.verify import (
     prior_hypothesis,
     prior_pairs,
     prior_poses,
+    prior_support_floor,
     refine_pose,
     rival_pairs,
     slide_on_ray,
@@ -648,3 +649,39 @@ def test_slide_on_ray_moves_a_pose_placed_at_the_wrong_scale_to_where_the_refere
     assert bounded is None or np.linalg.norm(bounded[0][:3, 3] - far[:3, 3]) <= 0.1 + 1e-9
     with pytest.raises(ValueError, match="ray_slide_share"):
         VerifyConfig(ray_slide_share=0.0)
+
+
+def test_slide_on_ray_needs_the_other_references_to_support_the_new_place() -> None:
+    """A right pose that one pair carries stays where it is when the other references explain fewer
+    than ``min_support_matches`` matches anywhere on the ray (home:2's frame 24 on the temporal run:
+    a single pair's pose 0.011 m off, the other reference's handful of stray matches peaked 0.17 m
+    along the ray and moved it there). With the matches of a real reference the pose placed at a
+    wrong scale still moves."""
+    T_a, _, T_wi, out = _aliased_frame("A")
+    config = VerifyConfig()
+    out = replace(out, T_qi=np.array([invert_pose(T_a) @ T for T in T_wi]))
+    centre = T_wi[0][:3, 3]
+    far = T_a.copy()
+    far[:3, 3] = centre + 1.25 * (T_a[:3, 3] - centre)
+    weights = np.array([1.0, 0.1, 0.0])
+    few = replace(out, matches=[out.matches[0], out.matches[1][:12], out.matches[2][:12]])
+    assert epipolar_support(T_a, T_wi[1:], few.matches[1:], CAMERA, config.max_epipolar_error_px).sum() >= 20
+    assert slide_on_ray(far, T_wi, few, weights, CAMERA, config) is None
+    assert slide_on_ray(T_a, T_wi, few, weights, CAMERA, config) is None
+    moved = slide_on_ray(far, T_wi, out, weights, CAMERA, config)
+    assert moved is not None and _errors(moved[0], T_a)[0] < 0.005
+
+
+def test_the_support_a_pose_placed_inside_a_prior_needs_grows_with_the_prior() -> None:
+    """``prior_support_per_m`` per metre of the prior's radius, never above the floor without a
+    prior (``min_total_support``): 67 matches inside the tightest prior the EKF gives (0.19 m, a
+    fix's gate), 140 (the floor) at its widest (0.4 m)."""
+    config = VerifyConfig()
+    assert config.min_total_support == 140 and config.prior_support_per_m == 350.0
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config) == 67
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.4, 0.2), config) == 140
+    assert prior_support_floor(PoseGate(np.zeros(3), 1.0, 0.2), config) == 140
+    off = replace(config, prior_support_per_m=None)
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), off) == 140
+    with pytest.raises(ValueError, match="prior_support_per_m"):
+        VerifyConfig(prior_support_per_m=0.0)

@@ -81,6 +81,7 @@ from vgpnav_env.perception.verify import (
     prior_hypothesis,
     prior_pairs,
     prior_poses,
+    prior_support_floor,
     reference_support,
     refine_pose,
     rival_pairs,
@@ -787,11 +788,13 @@ class Perceiver:
             enough = verdict.n_supporting >= max(2, v.min_supporting_references)
             if not (verdict.ok and enough) or (best is not None and verdict.strength <= best[3].strength):
                 continue
-            # The prior says where, not whether: the images alone must give the pose its support and
-            # structure (a prior 1 m off placed a pose 0.76 m off with two references of 31 and 37
-            # matches); only a rival outside the prior or the confidence share may object.
+            # The prior says where, not whether: the images must give the pose its support, the more
+            # the wider the prior (prior_support_floor; a prior 1 m off placed a pose 0.76 m off with
+            # two references of 31 and 37 matches). Inside it a rival outside the prior, the share
+            # and a wall's plane (its aliases lie elsewhere) may not object.
             alone = verify_pose(T, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
-            if alone.check not in ("", "ambiguity", "share"):
+            weak = alone.check == "support" and verdict.strength < prior_support_floor(prior, v)
+            if weak or alone.check not in ("", "support", "plane", "ambiguity", "share"):
                 continue
             best = T, pair_scale, float(out.confidence[usable].sum()), verdict
         if best is None:

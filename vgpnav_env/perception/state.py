@@ -308,7 +308,16 @@ class EKFConfig:
     (:func:`~vgpnav_env.perception.verify.verify_pose`, :func:`~vgpnav_env.perception.verify.
     prior_hypothesis`). On the query runs (classical, all frames, 320x240, k = 10) it took
     hospital's lost frames 18.1 -> 5.4 % and its gross poses 4 -> 0, home's lost 20.7 -> 10.9 %;
-    the yaw bound right after a fix is ~9-11 deg, ~1.2 deg more per turn while lost. Tracking
+    the yaw bound right after a fix is ~9-11 deg, ~1.2 deg more per turn while lost. The position
+    bound stays under a gross error (0.5 m); the yaw bound may not: a pose's rotation comes from the
+    images (the pairs' rotations, verified to 2 px), the prior's heading only keeps out views facing
+    elsewhere. At 15 deg home:2's temporal run (3a55401) had no prior on frames 22-25 while the
+    estimate was 0.06 m and 4-5 deg off, and lost two poses 0.04 and 0.01 m off for too little
+    support; at 25 deg (with the prior-placed support floor of
+    :func:`~vgpnav_env.perception.verify.prior_support_floor`) it lost 7 frames instead of 12,
+    none more than 0.5 m or 10 deg off. On home:1 and home:2 the 11 frames with a yaw bound over
+    15 deg had the estimate 0.01-0.08 m and at most 4.8 deg off; their poses were 0.001-0.055 m off
+    but one placed 0.15 m / 3.1 deg off. Tracking
     (references around the
     prediction) while the position standard deviation (largest axis) is at most
     ``track_max_sigma`` and the yaw's at most ``track_max_sigma_deg``; beyond, global retrieval
@@ -336,7 +345,7 @@ class EKFConfig:
     track_max_sigma: float = 0.5
     track_max_sigma_deg: float = 20.0
     prior_max_m: float = 0.4
-    prior_max_deg: float = 15.0
+    prior_max_deg: float = 25.0
 
     def __post_init__(self) -> None:
         values = (self.forward_sigma, self.lateral_sigma, self.turn_sigma_deg, self.continuous_sigma,
@@ -550,8 +559,8 @@ class EKFState:
     def prior(self) -> PoseGate | None:
         """Where the estimate confidently expects the robot: the fixes :meth:`correct` would accept
         (``gate_chi2`` over the estimate's and a fix's covariance) as a distance and a yaw bound
-        around the estimate, when these are within ``prior_max_m`` / ``prior_max_deg`` -- never wider
-        than a gross error -- else None. Call after :meth:`predict`."""
+        around the estimate, when these are within ``prior_max_m`` / ``prior_max_deg`` -- its
+        position never wider than a gross error -- else None. Call after :meth:`predict`."""
         cfg = self.config
         if not self._have_fix:
             return None

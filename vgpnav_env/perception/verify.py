@@ -131,14 +131,23 @@ class VerifyConfig:
     gets up to this many poses inside the prior (:func:`prior_poses`: the most confident pairs'
     rotations, positions searched on a grid of this step, then refined by :func:`refine_pose`),
     kept only when :func:`verify_pose` confirms one with at least two supporting references (the
-    Perceiver marks it ``prior_placed``; the images alone must give it the support and the
-    structure off the planes). Replayed on the lost frames of the temporal runs on 898b354 (the
-    EKF's priors as recorded): home 5 of 21 placed (2 within 5 cm / 5 deg, worst 0.17 m),
-    hospital:1 8 of 30 (5 within 5 cm / 5 deg, worst 0.17 m), none more than 0.5 m or 10 deg off.
+    Perceiver marks it ``prior_placed``). Replayed on the lost frames of the temporal runs on
+    898b354 (the EKF's priors as recorded): home 5 of 21 placed (2 within 5 cm / 5 deg, worst
+    0.17 m), hospital:1 8 of 30 (5 within 5 cm / 5 deg, worst 0.17 m), none more than 0.5 m or
+    10 deg off. ``prior_support_per_m``: such a pose's references must explain together this many
+    matches per metre of the prior's radius, at most ``min_total_support``
+    (:func:`prior_support_floor`; None: ``min_total_support``, as without a prior), and its
+    support may lie on the pairs' planes (a wall's aliases lie outside the prior). On the temporal
+    runs of 3a55401 (all queries) the floor of 140 and the plane check had lost home:1's frame 33
+    (a placed pose 0.007 m / 0.3 deg off, 341 matches, 5 off the planes) and home:2's frame 28 once
+    the EKF took frames 23-24 (0.021 m off, 109 matches inside a 0.23 m prior): 350 per metre asks
+    67 matches inside the EKF's tightest prior (0.19 m), 140 inside its widest (0.4 m).
     ``ray_slide_share``, ``ray_slide_gain``, ``ray_slide_max_shift``: a verified pose whose
     position one pair's ray carries (at least this share of the translation weights) is moved
     along that ray, at most ``ray_slide_max_shift`` metres, to where the other references explain
-    ``ray_slide_gain`` more matches (:func:`slide_on_ray`; None = never); the Perceiver tries it
+    ``ray_slide_gain`` more matches, and at least ``min_support_matches`` (:func:`slide_on_ray`;
+    None = never; a handful of stray matches of one other reference had moved home:2's frame 24,
+    a single pair's pose 0.011 m off, to 0.175 m off); the Perceiver tries it
     only inside the EKF's prior, which bounds the move (without one, in paper mode, it moved
     home:2's frame 57 from 0.47 to 0.75 m off). Offline on the stored
     poses of home's temporal run (2e04151, all 184 queries): 6 moved 1-28 cm, within 5 cm / 5 deg
@@ -172,6 +181,7 @@ class VerifyConfig:
     prior_max_roll_deg: float = 1.5
     prior_hypotheses: int = 3
     prior_grid_m: float = 0.08
+    prior_support_per_m: float | None = 350.0
     pitch_range_deg: tuple[float, float] | None = (5.0, 40.0)
     confidence_matches: float = 100.0
     ray_slide_share: float | None = 0.55
@@ -213,6 +223,8 @@ class VerifyConfig:
             raise ValueError(
                 f"min_explained_confidence must be in (0, 1] or None, got {self.min_explained_confidence}"
             )
+        if self.prior_support_per_m is not None and not self.prior_support_per_m > 0:
+            raise ValueError(f"prior_support_per_m must be > 0 or None, got {self.prior_support_per_m}")
         if not self.prior_max_roll_deg > 0:
             raise ValueError(f"prior_max_roll_deg must be > 0 deg, got {self.prior_max_roll_deg}")
         if self.ambiguity_references is not None and self.ambiguity_references < 1:
@@ -858,6 +870,18 @@ def second_round_references(
     return np.concatenate([np.array(keep, np.int64), new])
 
 
+def prior_support_floor(prior: PoseGate, config: VerifyConfig) -> int:
+    """The matches a pose placed inside the ``prior`` (:func:`prior_poses`) must have explained,
+    together, by references of at least ``min_support_matches`` each: ``prior_support_per_m`` per
+    metre of the prior's radius, at most ``min_total_support`` (the floor without a prior; a pose is
+    searched over the prior's disc, and the tighter the disc the fewer places a stray support can
+    come from). ``min_total_support`` when ``prior_support_per_m`` is None, 0 when both are."""
+    full = config.min_total_support or 0
+    if config.prior_support_per_m is None:
+        return full
+    return min(full, int(np.ceil(config.prior_support_per_m * prior.max_distance)))
+
+
 def prior_pairs(T_wi: NDArray[np.float64], out: BackboneOutput, prior: PoseGate) -> NDArray[np.bool_]:
     """(k,) the confident pairs whose own pose agrees with the ``prior``: the heading of
     ``R_wi R_iq`` within the prior's yaw bound, and the ray from the reference centre towards the
@@ -1015,7 +1039,8 @@ def slide_on_ray(
     reference would make a step where one crosses it) peaks at the true place. Positions within
     ``ray_slide_max_shift`` metres of ``T_wq`` on the ray (steps of 2 cm, then 5 mm about the
     best, the middle of equal ones), the rotation kept; the best counts when it gains at least
-    ``ray_slide_gain`` of ``T_wq``'s support."""
+    ``ray_slide_gain`` of ``T_wq``'s support and reaches ``min_support_matches`` (fewer are stray
+    matches, not a reference that sees the place)."""
     share = config.ray_slide_share
     w = np.asarray(weights, float)
     if share is None or out.matches is None or len(w) != len(T_wi) or not w.sum() > 0:
@@ -1047,7 +1072,7 @@ def slide_on_ray(
         scores = np.array([support(at(x)) for x in d])
         best = int(scores.max())
         best_d = float(np.median(d[scores == best]))  # the middle of a plateau of equal support
-    if best < support(T_wq) * (1.0 + config.ray_slide_gain) or best == 0:
+    if best < max(support(T_wq) * (1.0 + config.ray_slide_gain), config.min_support_matches):
         return None
     before = float(np.linalg.norm(T_wq[:3, 3] - centre))
     return at(best_d), best_d / before
