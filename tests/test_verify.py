@@ -172,6 +172,39 @@ def test_identical_rooms_are_ambiguous_never_the_wrong_room() -> None:
     assert right.ok and right.n_supporting == 3 and right.rival_strength == 0 and right.confidence > 0.8
 
 
+def test_a_rival_room_with_few_views_but_a_pair_as_confident_makes_the_frame_ambiguous() -> None:
+    # Hospital:1's paper gross frames (6 m / 2 m off, identical wards): retrieval gives three views
+    # of the wrong ward (room B) and one of the right one (room A), which matches only part of the
+    # view but is as confident as B's best pair: A's support is under ambiguity_ratio of B's.
+    T_a, T_b, T_wi, out = _aliased_frame("AB")
+    keep = [3, 4, 5, 0]
+    matches = [out.matches[i] for i in keep[:3]] + [out.matches[0][: int(0.4 * len(out.matches[0]))]]
+    out = replace(
+        out, T_qi=out.T_qi[keep], confidence=np.array([0.5, 0.3, 0.3, 0.5]),
+        n_matches=np.array([len(m) for m in matches]), scale_valid=out.scale_valid[keep], matches=matches,
+    )  # fmt: skip
+    T_wi = T_wi[keep]
+    config = VerifyConfig()
+    assert config.rival_confidence_ratio == 0.9
+    old = replace(config, rival_confidence_ratio=None)
+    before = verify_pose(T_b, T_wi, out, CAMERA, old, rivals=[T_a])
+    # The rule before rival_confidence_ratio: room A is a weaker rival and the wrong room is confirmed.
+    assert before.ok and before.rival_strength < config.ambiguity_ratio * 2 * before.support.max()
+    wrong = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a])
+    assert not wrong.ok and wrong.reason == "ambiguous" and wrong.check == "ambiguity", wrong.detail
+    assert "as confident as the pose's best" in wrong.detail and "10.0 m away" in wrong.detail
+    # Room A's pair weak (0.2 < 0.9 x 0.5): the support comparison alone decides, as before.
+    weak = replace(out, confidence=np.array([0.5, 0.3, 0.3, 0.2]))
+    assert verify_pose(T_b, T_wi, weak, CAMERA, config, rivals=[T_a]).ok
+    # A rival whose matches lie on one plane is no place, however confident its pair.
+    flat = replace(config, confident_rival_off_plane=10_000)
+    assert verify_pose(T_b, T_wi, out, CAMERA, flat, rivals=[T_a]).ok
+    with pytest.raises(ValueError, match="rival_confidence_ratio"):
+        VerifyConfig(rival_confidence_ratio=0.0)
+    with pytest.raises(ValueError, match="confident_rival_off_plane"):
+        VerifyConfig(confident_rival_off_plane=-1)
+
+
 def test_a_confident_prior_picks_the_room_the_robot_is_in_never_the_other() -> None:
     T_a, T_b, T_wi, out = _aliased_frame("AB")
     config = VerifyConfig()
@@ -486,9 +519,14 @@ def test_ambiguity_compares_the_strongest_references_of_each_place() -> None:
         scale_valid=out.scale_valid[keep], matches=[out.matches[i] for i in keep],
     )  # fmt: skip
     T_wi = T_wi[keep]
-    summed = VerifyConfig(ambiguity_references=None, min_explained_confidence=None, ambiguity_ratio=0.45)
+    summed = VerifyConfig(
+        ambiguity_references=None,
+        min_explained_confidence=None,
+        ambiguity_ratio=0.45,
+        rival_confidence_ratio=None,
+    )
     # Summed over all references, three views of B (664, 670, 530 matches) outweigh A's one
-    # (664): B is confirmed, wrongly.
+    # (664): B is confirmed, wrongly (without rival_confidence_ratio: A's pair is as confident).
     assert verify_pose(T_b, T_wi, out, CAMERA, summed, rivals=[T_a]).ok
     # The two strongest references of each place: A's lone view against B's two, ambiguous.
     verdict = verify_pose(T_b, T_wi, out, CAMERA, replace(summed, ambiguity_references=2), rivals=[T_a])

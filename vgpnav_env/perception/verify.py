@@ -152,6 +152,21 @@ class VerifyConfig:
     home:2's frame 57 from 0.47 to 0.75 m off). Offline on the stored
     poses of home's temporal run (2e04151, all 184 queries): 6 moved 1-28 cm, within 5 cm / 5 deg
     170 -> 174, none moved farther from the truth, 0.014 CPU-s per localized frame.
+    ``rival_confidence_ratio``: a distinct rival (its references claimed as for ``ambiguity_ratio``)
+    whose most confident pair reaches this share of the backbone confidence of the pose's most
+    confident supporting pair makes the frame "ambiguous", whatever its support (None: off); it
+    needs ``confident_rival_off_plane`` matches off one pair's dominant plane (the pose needs
+    ``min_off_plane_matches``). Retrieval returns many views of one copy of a repeated ward and one
+    or two, often farther, of the other: on hospital:1's paper run the true ward's support was
+    0.40-0.50 of the wrong one's (under ``ambiguity_ratio``) while its best pair was as confident
+    (0.75 against 0.79, 0.87 against 0.71), and its structure off the plane 17-101 matches.
+    Re-verifying the localized poses of the paper runs (3a55401, classical, all queries, 320x240,
+    k = 10): hospital:1 gross 6 -> 2, hospital:2 4 -> 3, hospital 3 -> 2, losing 0, 1 and 3 poses
+    within 5 cm / 5 deg (of 216, 307, 216 localized); 0.8 loses 5 more and removes no more gross
+    ones; 1.0 keeps hospital:1's frame 28 (6 m off) and loses 2 fewer. A floor of 5-15 matches off
+    the plane removes the same gross poses; 0 loses 3 more right ones, 20 keeps frame 234
+    (3.1 m off, turned 180 deg). The gross poses left have no confident rival (their true place's
+    pairs 0.07-0.23 against the pose's 0.12-0.97).
     """
 
     pose_height_tolerance: float | None = 0.3
@@ -187,6 +202,8 @@ class VerifyConfig:
     ray_slide_share: float | None = 0.55
     ray_slide_gain: float = 0.1
     ray_slide_max_shift: float = 0.3
+    rival_confidence_ratio: float | None = 0.9
+    confident_rival_off_plane: int = 10
 
     def __post_init__(self) -> None:
         if self.scale_check_ratio is not None and self.scale_check_ratio <= 1:
@@ -238,6 +255,10 @@ class VerifyConfig:
                 f"need ray_slide_gain >= 0 and ray_slide_max_shift > 0 m, got "
                 f"{self.ray_slide_gain}, {self.ray_slide_max_shift}"
             )
+        if self.rival_confidence_ratio is not None and not self.rival_confidence_ratio > 0:
+            raise ValueError(f"rival_confidence_ratio must be > 0 or None, got {self.rival_confidence_ratio}")
+        if self.confident_rival_off_plane < 0:
+            raise ValueError(f"confident_rival_off_plane must be >= 0, got {self.confident_rival_off_plane}")
         if not 0 < self.ambiguity_ratio <= 1 or self.confidence_matches <= 0:
             raise ValueError(
                 f"need 0 < ambiguity_ratio <= 1 and confidence_matches > 0, got "
@@ -486,7 +507,9 @@ def verify_pose(
     ``rival_claim_ratio`` of what the rival does (at least
     ``min_supporting_references`` of them, like the pose itself); when the strongest reaches
     ``ambiguity_ratio`` times the pose's own (each the support of its ``ambiguity_references``
-    strongest references), two places fit the images: "ambiguous". With
+    strongest references), two places fit the images: "ambiguous"; so they do when such a rival,
+    with ``confident_rival_off_plane`` matches off one pair's dominant plane, has a pair at least
+    ``rival_confidence_ratio`` times as confident as the pose's most confident supporting pair. With
     ``plane_threshold_px``, the pose must explain ``min_off_plane_matches`` matches off the
     dominant plane of one supporting reference (else "unverified"), and so must a rival of its
     own references to count. With ``min_explained_confidence``, the pose must explain that share of
@@ -516,6 +539,11 @@ def verify_pose(
         return int(reference_support(T, T_wi, flat, camera, config)[among].max())
 
     rival_strength, rival = 0, None  # the strongest distinct rival
+    # A rival whose best pair is about as confident as the pose's best pair (rival_confidence_ratio).
+    ratio, confident = config.rival_confidence_ratio, None
+    if ratio is not None and explained.any():
+        confident = ratio * float(out.confidence[explained].max())
+    confident_strength, confident_rival = 0, None
     inside_strength, inside = 0, None  # the strongest inside the prior (a placed pose's rival)
     claim = config.rival_claim_ratio
     placed = prior is not None and prior.admits(T_wq) and abs(_roll_deg(T_wq)) <= config.prior_max_roll_deg
@@ -532,9 +560,17 @@ def verify_pose(
         theirs_alone = claimed & (theirs >= config.min_support_matches)
         if not _enough_references(theirs[theirs_alone], config):
             continue  # one weak pair alone is no place (a plane's matches fit several poses)
-        if off_plane(T, theirs_alone) < config.min_off_plane_matches:
-            continue  # a wall's texture alone is no place either
+        structure = off_plane(T, theirs_alone)
         value = _strongest(theirs[theirs_alone], config.ambiguity_references)
+        if (
+            confident is not None
+            and structure >= config.confident_rival_off_plane
+            and float(out.confidence[theirs_alone].max()) >= confident
+            and value > confident_strength
+        ):
+            confident_strength, confident_rival = value, T
+        if structure < config.min_off_plane_matches:
+            continue  # a wall's texture alone is no place either
         if value > rival_strength:
             rival_strength, rival = value, T
         if placed and prior.admits(T) and value > inside_strength:
@@ -563,6 +599,10 @@ def verify_pose(
         if rival_strength >= config.ambiguity_ratio * _strongest(support, config.ambiguity_references):
             distance = np.linalg.norm(rival[:3, 3] - T_wq[:3, 3])
             detail = f"a pose {distance:.1f} m away has support {rival_strength} against {strength}"
+            return "ambiguity", detail
+        if confident_rival is not None:
+            distance = np.linalg.norm(confident_rival[:3, 3] - T_wq[:3, 3])
+            detail = f"a pose {distance:.1f} m away has a pair as confident as the pose's best"
             return "ambiguity", detail
         if config.min_explained_confidence is not None:
             share = explained_confidence(T_wq, T_wi, out, camera, config, raw, own)
