@@ -511,16 +511,12 @@ def test_a_pose_slides_along_its_ray_only_inside_a_prior(
     np.testing.assert_allclose(inside.T_wc[:3, 3], offered[0][:3, 3] + [0.005, 0.0, 0.0], atol=1e-9)
 
 
-def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_only_if_verified(
-    database: Database, query
-) -> None:
-    """Temporal mode: a frame lost for "no consensus" (here every rotation consensus fails) while the
-    EKF's prior is certain gets the pairs' rotations at the position inside the prior whose
-    epipolar geometry the references' matches fit (:func:`prior_poses`, :func:`refine_pose`):
-    localized, marked prior_placed; never without the prior, nor where a prior 1 m off says."""
+def _no_consensus(database: Database, query) -> tuple[Perceiver, list[Privileged]]:
+    """A classical perceiver whose rotation consensus always fails (``min_consensus`` 100, no
+    single-pair fallback), its ground anchored on the query run's first frame, and the privileged
+    data of frames 0 and 2."""
     run, depth = query
-    i, T = 2, run.poses[2]
-    priv = [Privileged(run.poses[j], np.zeros((0, 4, 4)), depth[j]) for j in (0, i)]
+    priv = [Privileged(run.poses[j], np.zeros((0, 4, 4)), depth[j]) for j in (0, 2)]
     classical = make_backbone("classical", database=database)
     config = PerceptionConfig(camera_height=QUERY_HEIGHT)
     anchored = Perceiver(database, classical, config=config)
@@ -532,6 +528,19 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
     )
     perceiver = Perceiver(database, classical, config=failing)
     perceiver.reset(anchored.anchor)
+    return perceiver, priv
+
+
+def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_only_if_verified(
+    database: Database, query
+) -> None:
+    """Temporal mode: a frame lost for "no consensus" (here every rotation consensus fails) while the
+    EKF's prior is certain gets the pairs' rotations at the position inside the prior whose
+    epipolar geometry the references' matches fit (:func:`prior_poses`, :func:`refine_pose`):
+    localized, marked prior_placed; never without the prior, nor where a prior 1 m off says."""
+    run, _ = query
+    i, T = 2, run.poses[2]
+    perceiver, priv = _no_consensus(database, query)
     alone = perceiver.perceive(run.images[i], priv[1])
     assert alone.status == "lost" and alone.reason == "no consensus"
     prior = PoseGate(base_pose(T) + [0.06, -0.04, np.radians(3.0)], 0.25, np.radians(9.0))
@@ -546,8 +555,8 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
     lost = perceiver.perceive(run.images[i], priv[1], prior=away)
     assert lost.status == "lost" and lost.reason == "no consensus" and not lost.prior_placed, lost.detail
     # The simulated backbone gives no matches: nothing to place a pose by.
-    simulated = Perceiver(database, make_backbone("simulated", seed=5), config=failing)
-    simulated.reset(anchored.anchor)
+    simulated = Perceiver(database, make_backbone("simulated", seed=5), config=perceiver.config)
+    simulated.reset(perceiver.anchor)
     assert simulated.perceive(run.images[i], priv[1], prior=prior).status == "lost"
 
 
@@ -559,23 +568,18 @@ def test_a_pose_placed_inside_a_tight_prior_needs_less_support_than_inside_a_wid
     (:func:`prior_support_floor`: ``prior_support_per_m`` per metre of its radius; home:2's frame 28
     on the temporal run, 0.021 m off with 109 matches inside a 0.23 m prior); never without the
     scaled floor, nor inside a prior in the wrong place."""
-    run, depth = query
+    run, _ = query
     i, T = 2, run.poses[2]
-    priv = [Privileged(run.poses[j], np.zeros((0, 4, 4)), depth[j]) for j in (0, i)]
-    classical = make_backbone("classical", database=database)
-    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
-    anchored = Perceiver(database, classical, config=config)
-    anchored.initialize(run.images[0], priv[0])
-    failing = VerifyConfig(single_fallback_confidence=None)
+    base, priv = _no_consensus(database, query)
+    failing = base.config.verify
     prior = PoseGate(base_pose(T) + [0.06, -0.04, np.radians(3.0)], 0.25, np.radians(9.0))
 
     def perceiver(verify: VerifyConfig) -> Perceiver:
-        averaging = MotionAveragingConfig(min_consensus=100)
-        p = Perceiver(database, classical, config=replace(config, averaging=averaging, verify=verify))
-        p.reset(anchored.anchor)
+        p = Perceiver(database, base.backbone, config=replace(base.config, verify=verify))
+        p.reset(base.anchor)
         return p
 
-    strength = perceiver(failing).perceive(run.images[i], priv[1], prior=prior).verdict.strength
+    strength = base.perceive(run.images[i], priv[1], prior=prior).verdict.strength
     # The floor without a prior just above the placed pose's support: it fails that alone.
     strict = replace(failing, min_total_support=strength + 1, prior_support_per_m=None)
     lost = perceiver(strict).perceive(run.images[i], priv[1], prior=prior)

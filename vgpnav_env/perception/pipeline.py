@@ -746,10 +746,11 @@ class Perceiver:
     ) -> tuple[PerceptionResult, NDArray[np.float64]] | None:
         """A ``lost`` frame placed inside the ``prior`` (:func:`prior_poses`) when :func:`verify_pose`
         with the prior confirms that pose with at least ``min_supporting_references`` (and 2)
-        references: the strongest such pose, localized and marked
-        :attr:`PerceptionResult.prior_placed`, and its metric points; else None. Its scale is the
-        ground's, checked against the supporting pairs' (their distance to the pose over their
-        backbone translation, median); without a ground peak the pose comes with no points."""
+        references that explain :func:`prior_support_floor` matches together: the strongest such
+        pose, localized and marked :attr:`PerceptionResult.prior_placed`, and its metric points;
+        else None. Its scale is the ground's, checked against the supporting pairs' (their distance
+        to the pose over their backbone translation, median); without a ground peak the pose comes
+        with no points."""
         out, refs = lost.backbone, lost.references
         if out is None or out.matches is None or not self.anchor.initialized:
             return None  # without matches a reference's support is a 10 deg test: no placement
@@ -790,11 +791,9 @@ class Perceiver:
                 continue
             # The prior says where, not whether: the images must give the pose its support, the more
             # the wider the prior (prior_support_floor; a prior 1 m off placed a pose 0.76 m off with
-            # two references of 31 and 37 matches). Inside it a rival outside the prior, the share
-            # and a wall's plane (its aliases lie elsewhere) may not object.
-            alone = verify_pose(T, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own)
-            weak = alone.check == "support" and verdict.strength < prior_support_floor(prior, v)
-            if weak or alone.check not in ("", "support", "plane", "ambiguity", "share"):
+            # two references of 31 and 37 matches). The verdict inside the prior has already waived
+            # rivals outside it, the share and a wall's plane (its aliases lie elsewhere).
+            if verdict.strength < prior_support_floor(prior, v):
                 continue
             best = T, pair_scale, float(out.confidence[usable].sum()), verdict
         if best is None:

@@ -23,7 +23,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
@@ -38,7 +37,11 @@ from vgpnav_env.geometry import (
     wrap_angle,
 )
 from vgpnav_env.perception.backbones.base import BackboneOutput
-from vgpnav_env.perception.backbones.classical import sampson_distance, triangulate_query_depth
+from vgpnav_env.perception.backbones.classical import (
+    dominant_plane,
+    sampson_distance,
+    triangulate_query_depth,
+)
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
     MotionResult,
@@ -355,11 +358,7 @@ def off_plane_matches(out: BackboneOutput, threshold_px: float) -> BackboneOutpu
         if len(m) < 8:
             kept.append(m[:0])
             continue
-        _, mask = cv2.findHomography(
-            m[:, :2], m[:, 2:], cv2.RANSAC, threshold_px, maxIters=500, confidence=0.99
-        )
-        on_plane = mask.ravel().astype(bool) if mask is not None else np.zeros(len(m), bool)
-        kept.append(m[~on_plane])
+        kept.append(m[~dominant_plane(m[:, :2], m[:, 2:], threshold_px)])
     return replace(out, matches=kept)
 
 

@@ -333,9 +333,10 @@ def sampson_distance(
         return np.abs(num) / np.sqrt(den)
 
 
-def _on_plane(pq: NDArray[np.floating], pr: NDArray[np.floating], threshold: float) -> NDArray[np.bool_]:
-    """(m,) the matches one homography explains (RANSAC, ``threshold`` pixels): a dominant plane,
-    which leaves the 5-point pose ambiguous."""
+def dominant_plane(pq: NDArray[np.floating], pr: NDArray[np.floating], threshold: float) -> NDArray[np.bool_]:
+    """(m,) which of the matched pixels ``pq`` -> ``pr`` (m, 2) one homography explains (OpenCV
+    RANSAC, ``threshold`` pixels): a dominant plane, which leaves the 5-point pose ambiguous and
+    fits a wall's texture at more than one place."""
     _, mask = cv2.findHomography(pq, pr, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
     return mask.ravel().astype(bool) if mask is not None else np.zeros(len(pq), bool)
 
@@ -561,14 +562,14 @@ class ClassicalBackbone(Backbone):
         if guided and not accepted:
             found = self.guided_pose(pq, pr, camera, expected_T_iq, candidates=[(R, t)])
             if found is not None and found[2].sum() >= cfg.guided_min_share * inliers.sum():
-                on_plane = _on_plane(pq, pr, cfg.homography_threshold)
+                on_plane = dominant_plane(pq, pr, cfg.homography_threshold)
                 if (found[2] & ~on_plane).sum() >= cfg.guided_min_off_plane:
                     (R, t, inliers), accepted, trust = found, True, cfg.guided_confidence_factor
         n_inliers = int(inliers.sum())
         if not accepted:
             return None, n_inliers, pixels
         if on_plane is None:
-            on_plane = _on_plane(pq, pr, cfg.homography_threshold)
+            on_plane = dominant_plane(pq, pr, cfg.homography_threshold)
         t = t / np.linalg.norm(t)
         K_inv = np.linalg.inv(camera.K)
         x_q = np.c_[pq[inliers], np.ones(n_inliers)] @ K_inv.T
