@@ -190,9 +190,8 @@ class AStarAgent:
         empty = np.zeros_like(obstacles)
         ahead = [p for p, _, straight in self._contacts if straight]
         last = [p for p, bump, _ in self._contacts if bump == self._bumps]
-        # Straight-ahead marks before the last bump's alone: home seeds 14 and 17 (A* + classical,
-        # f632d22) alternated for 300 steps between two bumped headings, each bump's marks leaving
-        # open the heading of the other.
+        # Straight-ahead marks before the last bump's alone: each bump's marks alone leave open the
+        # heading of the other, and the robot alternated between two bumped headings.
         attempts = (
             (obstacles, self.inflation, None),
             (obstacles, tight, None),
@@ -293,9 +292,8 @@ class AStarAgent:
         where its body stood during the last ``contact_memory`` steps."""
         # A true contact stays a robot radius away; ``contact_clearance`` leaves room for pose noise
         # (hugging a wall must not drop the contacts along it). The side marks of the arc land
-        # where the robot came from when it bumped sideways: home seed 4 (A* + classical) kept a
-        # mark 0.108 m from its centre, marks of four bumps closed a ring around it, and for 440
-        # steps it alternated between the two headings the last bump's marks alone left open.
+        # where the robot came from when it bumped sideways: marks kept there closed a ring around
+        # the robot, which then alternated between the two headings the last bump's marks left open.
         xy = np.asarray(xy, float)
         self._visited.append(xy)
         clear = self.contact_clearance

@@ -72,8 +72,8 @@ RECIPE_PPO_KWARGS: dict[str, Any] = {
 }
 #: PPO settings a fine-tuning run (``--init``) overrides by default: a third of the recipe's
 #: learning rate, and a KL target (SB3 ends an update's epochs once the approximate KL divergence
-#: from the rollout's policy exceeds 1.5 x ``target_kl``). Fine-tuning ppo_140000 at the recipe's
-#: 3e-4 and no target logged approx_kl 0.1-0.2 and collapsed after 161k steps.
+#: from the rollout's policy exceeds 1.5 x ``target_kl``): at the recipe's rate and no target,
+#: fine-tuning collapsed.
 FINETUNE_PPO_KWARGS: dict[str, Any] = {"learning_rate": 1e-4, "target_kl": 0.02}
 PERCEPTIONS = ("model", *sorted(BACKBONES))
 CONFIG_FILE = "config.json"

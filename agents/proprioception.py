@@ -87,10 +87,9 @@ class LoopDetector:
     (:func:`~vgpnav_env.robot.predict_pose`, a blocked step counted as no motion) from the episode's
     start: what the robot knows of its motion, nothing privileged. Where both repeat, the robot
     stands where it stood and sees what it saw, so the most likely action is the one it took then
-    (measured on pixels, home seed 3: lost with a dead-reckoned estimate, ``ppo_200000_steps``
-    alternated left and right turns for 400 steps; before a first fix, the same input at every
-    step). Call :meth:`reset` at an episode's start, :meth:`visit` with the policy's input before
-    it acts and :meth:`record` with the action taken.
+    (lost with a dead-reckoned estimate, a left and a right turn bring back the same input). Call
+    :meth:`reset` at an episode's start, :meth:`visit` with the policy's input before it acts and
+    :meth:`record` with the action taken.
     """
 
     def __init__(self, window: int = LOOP_WINDOW) -> None:

@@ -84,9 +84,7 @@ class PerceptionAStar:
     blocked (the robot's bump sensor, the env's ``bumped``) it turns to the untried heading (turns
     are exact: headings are counted in turn steps from the start) farthest from every heading it
     drove along, and after every ``explore_steps`` steps moved it turns once more in full (a new
-    viewpoint each time). It used to turn and bump into the same wall for the whole episode, then
-    to turn about after every bump: in a pocket that kept it on one line (home seeds 3 and 10,
-    never localized in 500 steps).
+    viewpoint each time): turning about after every bump kept it on one line in a pocket.
     When the pose becomes uncertain -- its position standard deviation
     (the pose state's covariance, largest axis) above ``max_sigma`` metres, or without a
     covariance (paper mode) after ``max_blind_steps`` dead-reckoned steps -- it turns in place for

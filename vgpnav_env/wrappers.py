@@ -30,8 +30,7 @@ The observation:
   (:meth:`~vgpnav_env.perception.occupancy.LogOddsMap.mark_contact`;
   :func:`~vgpnav_env.robot.felt_contact`): the reconstruction misses low, plain or close
   furniture, and without the mark a policy pushing into such an obstacle saw the same free crop at
-  every step (home seed 3, classical pixels, lost against a table: ``ppo_200000_steps`` pushed
-  forward on 460 of 500 steps).
+  every step.
 - ``localized``: 1 if this frame's perceived pose was taken in by the pose state, 0 if the pose was
   carried forward (lost, or a perceived pose the EKF rejected).
 

@@ -38,8 +38,7 @@ those frames. :class:`ModelObservation` then replaces the pixel pipeline of
   placeholder at the map centre, yaw 0, until the first fix); and obstacles that depth never shows:
   a fraction of the map up to :data:`MAX_UNSEEN`, in blobs of ~:data:`UNSEEN_BLOB_M`, where
   rendered depth points above the floor are dropped (the pixel pipeline's reconstruction misses
-  low, plain or close furniture: home seed 4 with a right pose pushed ~190 of 300 steps into a
-  table its map held as free). The policy meets contacts its map does not explain, as on pixels.
+  low, plain or close furniture). The policy meets contacts its map does not explain, as on pixels.
 
 Everything privileged (true pose, rendered depth, ground-truth prior) comes from the env; the name
 says so. Same seed (``reset(seed=...)``), same draws. The default fit

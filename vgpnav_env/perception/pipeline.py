@@ -217,8 +217,7 @@ class PerceptionResult:
     def prior_placed(self) -> bool:
         """Localized only thanks to the caller's ``prior`` (:attr:`Verdict.by_prior`: the images
         alone would not confirm the pose): a state estimator may take it in, a map should not (such
-        poses skip the plane check and may sit a decimetre off: fused, they closed a doorway on home
-        seed 9)."""
+        poses skip the plane check and may sit a decimetre off: fused, they can close a doorway)."""
         return self.localized and self.verdict is not None and self.verdict.by_prior
 
     @property
@@ -341,10 +340,9 @@ class Perceiver:
         Initialization"): ``z_ground = mean(t_wc.z) - camera_height`` over the frames whose motion
         averaging succeeded. Then every frame is perceived (and fused) with the anchor. If none
         localizes (verified), the anchor is dropped: poses the images do not confirm set no floor
-        (a wall's plane gave home seed 3 a pose 1 m off and the floor 0.52 m too high, and every
-        right pose after it failed the camera-height check); the first verified :meth:`perceive`
-        sets it. Frames that fail the mount check against the map's floor anchor nothing
-        (:meth:`_map_camera_z`).
+        (a wrong floor fails every right pose after it on the camera-height check); the first
+        verified :meth:`perceive` sets it. Frames that fail the mount check against the map's floor
+        anchor nothing (:meth:`_map_camera_z`).
         """
         if isinstance(images, np.ndarray) and images.ndim == 3:
             images = [images]
@@ -548,8 +546,7 @@ class Perceiver:
         self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None, gate: PoseGate | None
     ) -> tuple[_MetricPose, Verdict, NDArray[np.float64]] | None:
         """The verified ``pose`` moved along the ray its position rests on (:func:`slide_on_ray`;
-        the caller tries it only inside the EKF's ``prior``, which bounds the move: without one, on
-        home:2's paper run, it moved a pose 0.47 -> 0.75 m off),
+        the caller tries it only inside the EKF's ``prior``, which bounds the move),
         its scale corrected by the same factor, with its verdict and metric points, when the images
         verify it there (:meth:`_verify`, no rival taking its place) and the ``prior`` and the
         ``gate`` admit it; else None."""
@@ -605,10 +602,8 @@ class Perceiver:
     def _map_camera_z(self) -> float:
         """World height (metres) of a camera at the calibrated height above the floor the
         database's reconstruction found (:attr:`Database.z_ground`; nan when unknown). A pose that
-        anchors the ground must stand there (:func:`implausible_mount`): hospital:1 seed 2's first
-        verified pose, a single pair's 1.25 m off, set the floor 0.50 m too high, and every right
-        pose after it failed the camera-height check (its episode 99.6 % lost, started 0.58 m off
-        by two wrong fixes at that height)."""
+        anchors the ground must stand there (:func:`implausible_mount`): a floor set too high fails
+        every right pose after it on the camera-height check."""
         return float(self.database.z_ground) + self.config.camera_height
 
     def _localize(
@@ -807,8 +802,8 @@ class Perceiver:
         scale = plausible_scale(scale, self._median_depth(out), v)
         if not scale.ok:
             return None
-        # A placed pose without the ground's scale has no metric depth to map: on hospital:1 the
-        # supporting pairs' scale put 8 such frames' points 0.04-2.2 m off (Acc mean 0.59 m).
+        # A placed pose without the ground's scale has no metric depth to map (the supporting
+        # pairs' scale puts its points decimetres to metres off).
         ground_scale = scale.source == "ground"
         points_w = self._metric_points(out, T, scale.scale) if ground_scale else np.zeros((0, 3))
         detail = f"placed inside the prior after {lost.reason}: {lost.detail}"
@@ -870,8 +865,7 @@ class Perceiver:
         pose = _MetricPose(T_wc, scale, ground, z_ground, provisional)
         if not found.ok and not single:
             # The rays placed the pose in metres (the references' known poses); only the depth has no
-            # scale: verification judges the pose, and it maps nothing (home's temporal run: frames
-            # 22 and 166, 0.06 and 0.01 m off, were lost as "no ground").
+            # scale: verification judges the pose, and it maps nothing.
             detail = "no ground peak and no ray-implied scale: no points"
             return replace(loc, detail=f"{detail} ({loc.detail})" if loc.detail else detail), pose
         if not scale.ok:

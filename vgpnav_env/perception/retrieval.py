@@ -62,12 +62,6 @@ class VladConfig:
     from at most ``max_training_descriptors`` descriptors. ``power_norm`` applies signed square
     roots to the VLAD residuals (burstiness). ``colour_weight`` w > 0 appends the colour layout so
     that the similarity is ``(vlad . vlad' + w colour . colour') / (1 + w)``; 0 = pure VLAD.
-    Defaults were chosen on the built-in ``home`` scene (database vs changed-layout queries, best
-    match within 1.5 m / 45 deg: 0.60 plain, 0.62 with power_norm, 0.72 with colour_weight 1).
-    ``"sift"`` measured on all 184 home queries (classical backbone, k = 10, 2 cores): index
-    25 -> 8 CPU s and ~0.03 CPU s less per frame; lost 15 -> 15, gross errors 16 -> 13, recall at
-    5 cm / 5 deg 0.799 -> 0.799, but on the frames both localize well Acc 0.056 -> 0.059 m and
-    Comp 0.052 -> 0.054 m (other references), so dense stays the default.
     """
 
     local_features: Literal["dense", "sift"] = "dense"
@@ -419,15 +413,9 @@ class RetrievalConfig:
     the largest pairwise camera distance in the valid pool (the paper leaves it undefined).
     ``rerank`` > 0: the ``rerank`` most similar database images are re-scored by
     :func:`geometric_rerank` before the selection (``rerank_keypoints`` query keypoints,
-    candidates with fewer than ``rerank_min_inliers`` verified matches drop to the end); 0 = off.
-    Measured with the verification of main at 738a134 on all queries of the 8 scenes of
-    ``benchmarks/localization_scenes.md`` (classical, k = 10, Alg. 1), off -> 40: gross poses fall
-    on the procedural hospitals (hospital:1 / :2 / :3: 3 -> 1, 5 -> 2, 3 -> 2), stay on hospital
-    (4) and rise on home:3 (1 -> 2), but lost frames rise on every hospital and home:3 (hospital:1
-    27.3 -> 38.8 %, hospital:3 37.1 -> 49.7 %) and recall at 5 cm / 5 deg falls (0.70 -> 0.59,
-    0.62 -> 0.48): the candidates with most verified matches are as often an identical ward's,
-    whose views then make right poses ``ambiguous``. It costs 0.25-0.29 CPU s per frame (40
-    candidates, 600 keypoints). A trade, not a gain, so off by default.
+    candidates with fewer than ``rerank_min_inliers`` verified matches drop to the end); 0 = off,
+    the default: in identical wards the candidates with most verified matches are as often the
+    other ward's.
     """
 
     k: int = 10
@@ -597,9 +585,7 @@ class TrackingConfig:
     path passed the place at a distance, or facing elsewhere): with them, the cameras within
     ``overlap_radius`` metres and ``max_angle_deg`` whose images hold at least ``min_overlap`` of
     the predicted view (:func:`overlapping_cameras`, the view sampled at ``overlap_depths_m``);
-    still fewer: none (global retrieval). On home:2's temporal run (all 142 queries) frames 21-24
-    had 1-2 database cameras within 2 m / 45 deg of the true pose, while 7-8 within 4 m see its
-    view (e.g. 2.9 m behind, 7-8 deg apart).
+    still fewer: none (global retrieval).
     """
 
     radius: float = 2.0

@@ -7,9 +7,8 @@ distribution below the camera, at ``h_ground_b < 0`` (backbone units). With the 
 height ``z_ground`` anchored in W at initialisation (camera pose minus the calibrated
 camera height), each frame's scale is ``(t_wq.z - z_ground) / (-h_ground_b)``.
 
-Recommended use (measured on the built-in ``home`` scene, query run, 2 % depth noise:
-ground within 3 % in 84/110 frames from the query alone; with the references and a prior
-106/110 found, all within 3 %): histogram the whole reconstruction (:func:`reconstruction_points`)
+Recommended use (the query alone misses the ground more often than the whole reconstruction
+with a prior): histogram the whole reconstruction (:func:`reconstruction_points`)
 and pass ``GroundAnchor.expected_height_b(T_wq, MotionResult.scale_from_rays)`` as the prior.
 """
 

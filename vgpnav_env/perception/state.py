@@ -294,37 +294,24 @@ class EKFConfig:
     ``kidnap_fixes``: the estimate drifted (e.g. a blocked step the pixels did not show), it was not
     carried away. Either way the run must hold fixes of two views: its first taken at least
     ``init_view_m`` of travel (a blocked step counts none) or ``init_view_deg`` of net turning
-    before its last (by the odometry); fixes of the spot the robot stands on may share one error
-    (hospital seed 4: three fixes of one spot, 0.44 m / 10 deg off, reset an estimate 1 cm off
-    and the robot drove up to 0.53 m off for 60 steps). The first
+    before its last (by the odometry): fixes of the spot the robot stands on may share one error.
+    The first
     estimate of an episode likewise needs ``init_fixes`` consistent fixes, the earliest of them
     taken at least ``init_view_m`` of travel or ``init_view_deg`` of turning before the last (by
     the odometry): a single wrong first fix, or several of one view, would otherwise start the
-    episode at the wrong place (home seed 0 and hospital seed 19 started 3.8 m and ~1-4 m off from
-    the views at reset); a fix whose verifier score reaches ``init_score`` starts it alone.
+    episode at the wrong place; a fix whose verifier score reaches ``init_score`` starts it alone.
     The estimate's ``prior`` (:meth:`EKFState.prior`: the region of the fixes it would accept)
     goes to the perceiver while it is within ``prior_max_m`` and ``prior_max_deg``: inside it, a
     pose needs less from the images, and a rival there beats the same view in an identical ward
     (:func:`~vgpnav_env.perception.verify.verify_pose`, :func:`~vgpnav_env.perception.verify.
-    prior_hypothesis`). On the query runs (classical, all frames, 320x240, k = 10) it took
-    hospital's lost frames 18.1 -> 5.4 % and its gross poses 4 -> 0, home's lost 20.7 -> 10.9 %;
-    the yaw bound right after a fix is ~9-11 deg, ~1.2 deg more per turn while lost. The position
-    bound stays under a gross error (0.5 m); the yaw bound may not: a pose's rotation comes from the
-    images (the pairs' rotations, verified to 2 px), the prior's heading only keeps out views facing
-    elsewhere. At 15 deg home:2's temporal run (3a55401) had no prior on frames 22-25 while the
-    estimate was 0.06 m and 4-5 deg off, and lost two poses 0.04 and 0.01 m off for too little
-    support; at 25 deg (with the prior-placed support floor of
-    :func:`~vgpnav_env.perception.verify.prior_support_floor`) it lost 7 frames instead of 12,
-    none more than 0.5 m or 10 deg off. On home:1 and home:2 the 11 frames with a yaw bound over
-    15 deg had the estimate 0.01-0.08 m and at most 4.8 deg off; their poses were 0.001-0.055 m off
-    but one placed 0.15 m / 3.1 deg off. Tracking
-    (references around the
+    prior_hypothesis`). The position bound stays under a gross error (0.5 m); the yaw bound may
+    not: a pose's rotation comes from the images (the pairs' rotations, verified to 2 px), the
+    prior's heading only keeps out views facing elsewhere. Tracking (references around the
     prediction) while the position standard deviation (largest axis) is at most
     ``track_max_sigma`` and the yaw's at most ``track_max_sigma_deg``; beyond, global retrieval
     relocalizes. A tracked frame that perceived no pose hands the next frame to global retrieval
     (then tracking again, alternating while lost): each frame runs one localization attempt, never
-    a tracking attempt and a global one (on home's 184 query frames the failed tracking attempts
-    and their same-frame global retries made temporal mode cost more CPU per frame than paper mode).
+    a tracking attempt and a global one.
     """
 
     forward_sigma: float = 0.03

@@ -56,120 +56,72 @@ from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, S
 class VerifyConfig:
     """Settings of the checks and second chances (module docstring); None switches one off.
 
-    ``pose_height_tolerance``: a pose whose camera height above the anchored ground differs from
-    the calibrated camera height by more than this (metres) fails like a failed consensus.
-    ``scale_check_ratio``: when the ground scale and the ray-implied scale of motion averaging
-    differ by more than this factor, the ground peak is taken to be something else (a table
-    top, a plant pot seen from above) and the ray-implied scale is used. The ground is first
-    searched within ``ScaleConfig.prior_tolerance`` of the ray-implied height (such a peak always
-    passes the check); only when nothing is there does the dominant peak compete, and the check
-    decides (on ``home`` this fixed a 25 % ray-scale error and kept a table top at 2.2x out).
-    The rays decide only when they are strong (total motion-averaging weight of at least
-    ``strong_rays_weight``) or the ground peak has more than ``max_under_ground`` of the points
-    under it (:attr:`~vgpnav_env.perception.scale_recovery.GroundEstimate.below`: a table top
-    leaves the floor below it); else the ground stands. Two nearly parallel rays of weight < 0.1
-    placed home's frames 21 and 79 with half the true scale (ground peak 1.1x right, 0.1 % and
-    0.4 % of the points under it); the rays that were right against a table top had weight >= 0.38
-    (home 66, 88; hospital 289, whose bed top has 1.6 % under it) or >= 9.7 % of the points under
-    the top. ``min_median_depth_m``: a scale that puts the median confident query depth nearer
-    than this (metres) is no scale (home's frame 141: rays of weight 0.29 gave 0.005 m per unit,
-    a median depth of 5 mm; true medians are >= 0.54 m on home and hospital).
-    ``second_round_below_inliers``: when motion averaging keeps fewer consistent references than
-    this (a failed pose counts 0), a second round verifies references chosen by pose: up to
-    ``second_round_hypotheses`` distinct pose hypotheses (the averaged pose, the most confident
-    pairs' ``R_wi R_iq`` along their rays) select database cameras within
-    ``second_round_radius`` metres and ``second_round_max_angle_deg`` of them; the round with more
-    consistent references wins (None = one round, the paper's pipeline). Retrieval by appearance
-    alone often leaves a single overlapping reference in a large database; the second round
-    finds its neighbours.
-    ``plane_threshold_px``: when set, a pose (and a rival) must also explain at least
-    ``min_off_plane_matches`` matches of one reference off that pair's dominant plane (matches no
-    RANSAC homography of the pair explains within this many pixels, :func:`off_plane_matches`): a
-    wall's repeated texture matches the same texture on another room's wall, and such planar
-    matches fit a pose at either place. On home's default run (classical, all 184 queries,
-    320x240, k = 10), re-verifying its 148 localized poses: all 9 gross ones (0.8-8.8 m off) had
-    at most 15 matches off the plane (most 0-4), and 5 of the 139 right ones fall under 20
-    (gross 9 -> 0, lost 19.6 -> 27.2 %, recall at 5 cm / 5 deg 0.728 -> 0.701; None = off).
-    ``single_reference_support``: a pose (or a rival) that fewer than ``min_supporting_references``
-    references explain still counts when one of them explains at least this many matches (None:
-    never). Re-verifying the poses of the default runs (classical, all queries, 320x240, k = 10)
-    with 100: home lost 25.5 -> 23.4 %, recall at 5 cm / 5 deg 0.717 -> 0.739, no gross pose;
-    hospital gross 16 -> 13 (7.0 -> 5.6 %), lost 30.8 -> 29.9 %, recall 0.644 -> 0.659: one
-    strong pair confirms a right pose that retrieval found a single view of, and as a rival it
-    makes the frame "ambiguous" when the pose's own support is an aliased place's.
-    ``min_total_support``: the references a pose explains must together explain at least this
-    many matches (its ``strength``; None: no floor), else "unverified" (the "support" check). Two
-    pairs barely over ``min_support_matches`` fit a place that repeats the true one 1.5-3 m away
-    (hospital beds, doors): re-verifying the localized poses of hospital's default run (classical,
-    all 331 queries, 320x240, k = 10, on b4e3a47), 2 of its 6 gross poses (3.0 and 1.8 m off) had
-    126 and 114 matches, its 193 right poses at least 163, home's 134 right ones at least 154.
-    ``single_fallback_confidence``: when weighted motion averaging fails but one pair's backbone
-    confidence is at least this, the pose comes from that pair alone, placed with the ground
-    scale at the calibrated camera height (as the ``single`` ablation does). Requires scale
-    recovery. Measured on ``home`` (classical, 50 queries, lost / recall@5cm): None 29 / 0.36,
-    0.5 26 / 0.40, 0.3 23 / 0.46, 0.15 21 / 0.50, with the same 2 gross (> 0.25 m) errors.
-    ``min_explained_confidence``: the pose must explain at least this share of the backbone's
-    trust in the pairs (:func:`explained_confidence`), else "unverified": a pose that a cluster
-    of weak pairs at an aliased place gives, while the most confident pairs see another place (or
-    agree with it in a small part of their matches), is wrong. Re-verifying the localized poses
-    of hospital's default run (classical, all 331 queries, 320x240, k = 10): right poses have a
-    share >= 0.49 (1 % quantile), 4 of 16 gross ones fall under 0.45; with ``rerank`` 40, 3 of 7
-    gross and 2 of 223 right; home: no right pose under 0.45 (None = off).
-    ``rival_claim_ratio``: a reference the pose explains counts for a rival too when the pose
-    explains fewer than this share of the matches the rival explains (its own relative pose, for
-    :func:`rival_poses`): in identical wards the true place's most confident pair often agrees
-    with the wrong pose in 30-70 of its 350 matches, and only unexplained references used to make
-    rivals (None: only references the pose does not explain at all). Measured offline on the
-    stored poses of hospital's default run (73f6147, all 331 queries): gross 12 -> 11, lost
-    30.8 -> 31.1 %; home unchanged.
-    ``ambiguity_references``: the pose and a rival are compared by the support of their this many
-    strongest references (None: all of them). Retrieval returns many views of one place and few
-    of the other; in identical wards the place with more views retrieved is not the likelier one.
-    Offline on the same hospital poses, with the rule above, 2: gross 11 -> 7 (4.8 -> 3.2 %), lost
-    31.1 -> 34.7 %, recall at 5 cm / 5 deg 0.656 -> 0.631; home unchanged (0 gross, lost 23.4 %).
-    ``prior_max_roll_deg``: a pose inside a state estimate's prior counts as placed by it only with
-    its camera's roll within this (``verify_pose``'s ``prior``); on home's temporal run right poses
-    rolled at most 0.5 deg, a wrong one inside the prior (11 deg off in pitch) 3 deg.
-    ``prior_hypotheses``, ``prior_grid_m``: a frame lost while a state estimate's prior is given
-    gets up to this many poses inside the prior (:func:`prior_poses`: the most confident pairs'
-    rotations, positions searched on a grid of this step, then refined by :func:`refine_pose`),
-    kept only when :func:`verify_pose` confirms one with at least two supporting references (the
-    Perceiver marks it ``prior_placed``). Replayed on the lost frames of the temporal runs on
-    898b354 (the EKF's priors as recorded): home 5 of 21 placed (2 within 5 cm / 5 deg, worst
-    0.17 m), hospital:1 8 of 30 (5 within 5 cm / 5 deg, worst 0.17 m), none more than 0.5 m or
-    10 deg off. ``prior_support_per_m``: such a pose's references must explain together this many
-    matches per metre of the prior's radius, at most ``min_total_support``
-    (:func:`prior_support_floor`; None: ``min_total_support``, as without a prior), and its
-    support may lie on the pairs' planes (a wall's aliases lie outside the prior). On the temporal
-    runs of 3a55401 (all queries) the floor of 140 and the plane check had lost home:1's frame 33
-    (a placed pose 0.007 m / 0.3 deg off, 341 matches, 5 off the planes) and home:2's frame 28 once
-    the EKF took frames 23-24 (0.021 m off, 109 matches inside a 0.23 m prior): 350 per metre asks
-    67 matches inside the EKF's tightest prior (0.19 m), 140 inside its widest (0.4 m).
-    ``ray_slide_share``, ``ray_slide_gain``, ``ray_slide_max_shift``: a verified pose whose
-    position one pair's ray carries (at least this share of the translation weights) is moved
-    along that ray, at most ``ray_slide_max_shift`` metres, to where the other references explain
-    ``ray_slide_gain`` more matches, and at least ``min_support_matches`` (:func:`slide_on_ray`;
-    None = never; a handful of stray matches of one other reference had moved home:2's frame 24,
-    a single pair's pose 0.011 m off, to 0.175 m off); the Perceiver tries it
-    only inside the EKF's prior, which bounds the move (without one, in paper mode, it moved
-    home:2's frame 57 from 0.47 to 0.75 m off). Offline on the stored
-    poses of home's temporal run (2e04151, all 184 queries): 6 moved 1-28 cm, within 5 cm / 5 deg
-    170 -> 174, none moved farther from the truth, 0.014 CPU-s per localized frame.
-    ``rival_confidence_ratio``: a distinct rival (its references claimed as for ``ambiguity_ratio``)
-    whose most confident pair reaches this share of the backbone confidence of the pose's most
-    confident supporting pair makes the frame "ambiguous", whatever its support (None: off); it
-    needs ``confident_rival_off_plane`` matches off one pair's dominant plane (the pose needs
-    ``min_off_plane_matches``). Retrieval returns many views of one copy of a repeated ward and one
-    or two, often farther, of the other: on hospital:1's paper run the true ward's support was
-    0.40-0.50 of the wrong one's (under ``ambiguity_ratio``) while its best pair was as confident
-    (0.75 against 0.79, 0.87 against 0.71), and its structure off the plane 17-101 matches.
-    Re-verifying the localized poses of the paper runs (3a55401, classical, all queries, 320x240,
-    k = 10): hospital:1 gross 6 -> 2, hospital:2 4 -> 3, hospital 3 -> 2, losing 0, 1 and 3 poses
-    within 5 cm / 5 deg (of 216, 307, 216 localized); 0.8 loses 5 more and removes no more gross
-    ones; 1.0 keeps hospital:1's frame 28 (6 m off) and loses 2 fewer. A floor of 5-15 matches off
-    the plane removes the same gross poses; 0 loses 3 more right ones, 20 keeps frame 234
-    (3.1 m off, turned 180 deg). The gross poses left have no confident rival (their true place's
-    pairs 0.07-0.23 against the pose's 0.12-0.97).
+    Match counts are per reference pair; angles in degrees; distances in metres.
+
+    Attributes:
+        pose_height_tolerance: the camera's height above the anchored ground may differ from the
+            calibrated camera height by at most this (else the pose fails like a failed consensus).
+        scale_check_ratio: when the ground scale and the rays' implied scale differ by more than
+            this factor (> 1), the ground peak is something else (a table top) and the rays'
+            scale is used, if the rays are strong or the peak has points under it (below).
+        strong_rays_weight: the rays overrule the ground only with at least this total
+            motion-averaging weight ...
+        max_under_ground: ... or when more than this fraction of the points lie under the ground
+            peak (a table top leaves the floor below it).
+        min_median_depth_m: a scale that puts the median confident query depth nearer than this
+            is no scale.
+        second_round_below_inliers: with fewer consistent references than this (a failed pose
+            counts 0) a second round verifies references chosen around the first round's pose
+            hypotheses; the round with more consistent references wins (None: one round).
+        second_round_hypotheses: at most this many distinct pose hypotheses seed the second round.
+        second_round_radius: its database cameras lie within this distance of a hypothesis ...
+        second_round_max_angle_deg: ... and within this angle of its heading.
+        single_fallback_confidence: when motion averaging fails, a pair at least this confident
+            gives the pose alone, placed with the ground scale (needs scale recovery).
+        max_epipolar_error_px: a match supports a pose when its epipolar error is at most this.
+        min_support_matches: a reference supports a pose when it explains at least this many
+            matches.
+        min_supporting_references: a pose (or a rival) needs this many supporting references ...
+        single_reference_support: ... or one reference explaining at least this many matches.
+        min_total_support: the supporting references must explain this many matches together
+            (the "support" check).
+        rival_distance: a rival pose is distinct when farther than this ...
+        rival_angle_deg: ... or turned by more than this.
+        ambiguity_ratio: a distinct rival whose support reaches this share of the pose's makes
+            the frame "ambiguous".
+        plane_threshold_px: matches no homography of the pair explains within this are off its
+            dominant plane (None: no plane check).
+        min_off_plane_matches: a pose (and a rival, to count) must explain this many off-plane
+            matches of one reference: matches on one wall fit any room with that wallpaper.
+        min_explained_confidence: the pose must explain at least this share of the backbone's
+            confidence in the pairs (:func:`explained_confidence`).
+        rival_claim_ratio: a reference the pose explains in less than this share of what a rival
+            explains counts for the rival too (None: only references the pose does not explain).
+        ambiguity_references: the pose and a rival are compared by the support of their this many
+            strongest references (None: all).
+        max_roll_deg: the camera's roll must stay within this (the "mount" check) ...
+        pitch_range_deg: ... and its downward pitch within this range.
+        prior_max_roll_deg: a pose inside a state estimate's prior counts as placed by it only
+            with its roll within this.
+        prior_hypotheses: a frame lost inside a prior gets up to this many pose hypotheses there
+            (:func:`prior_poses`) ...
+        prior_grid_m: ... whose positions are searched on a grid of this step.
+        prior_support_per_m: a pose placed inside the prior needs this many supporting matches per
+            metre of the prior's radius, at most ``min_total_support`` (:func:`prior_support_floor`;
+            None: ``min_total_support``).
+        confidence_matches: the support that halves a pose's score:
+            ``strength / (strength + rival_strength + confidence_matches)``.
+        ray_slide_share: a verified pose whose position one pair's ray carries (at least this
+            share of the translation weight) may slide along that ray (:func:`slide_on_ray`;
+            None: never) ...
+        ray_slide_gain: ... to where the other references explain this fraction more matches ...
+        ray_slide_max_shift: ... by at most this distance.
+        rival_confidence_ratio: a distinct rival whose most confident pair reaches this share of
+            the confidence of the pose's best supporting pair makes the frame "ambiguous" (None:
+            off) ...
+        confident_rival_off_plane: ... when that rival explains this many off-plane matches.
+
+    Where the defaults came from: ``benchmarks/history/tuning.md``.
     """
 
     pose_height_tolerance: float | None = 0.3
@@ -517,13 +469,13 @@ def verify_pose(
 
     ``prior``: where a state estimate confidently expects the camera (e.g. the EKF's gate,
     :meth:`~vgpnav_env.perception.state.EKFState.prior`; never wider than a gross error). A pose
-    inside it, its camera rolled at most ``prior_max_roll_deg`` (right poses roll under 0.5 deg,
-    a wrong one 11 deg off in pitch rolled 3 deg), has its place from the estimate and needs from
-    the images only its precise pose: rivals outside the prior do not count (the same view in an
-    identical ward the robot cannot have reached), and the ``min_total_support``, plane and share
-    checks are waived (the mount check and the supporting references stay). A pose outside it is
-    verified as without a prior (the :class:`~vgpnav_env.perception.pipeline.Perceiver` then
-    loses it as "inconsistent motion", or takes the rival the prior picks, :func:`prior_hypothesis`).
+    inside it, its camera rolled at most ``prior_max_roll_deg``, has its place from the estimate
+    and needs from the images only its precise pose: rivals outside the prior do not count (the
+    same view in an identical ward the robot cannot have reached), and the ``min_total_support``,
+    plane and share checks are waived (the mount check and the supporting references stay). A pose
+    outside it is verified as without a prior (the
+    :class:`~vgpnav_env.perception.pipeline.Perceiver` then loses it as "inconsistent motion", or
+    takes the rival the prior picks, :func:`prior_hypothesis`).
     """
     raw = reference_support(T_wq, T_wi, out, camera, config)
     support = np.where(raw >= config.min_support_matches, raw, 0)
@@ -634,8 +586,7 @@ def prior_hypothesis(
     that :func:`verify_pose` confirms as the pose (with the prior, against its own rivals and
     ``T_wq``), and its verdict; None when none is confirmed. In identical wards the averaged pose
     is often the other ward's view and the true place's pairs make a rival: inside the prior, it
-    is the robot's (on hospital's query run with the EKF's prior, 14 of 16 such rivals were within
-    5 cm / 5 deg). ``scale``: metres per backbone unit of the rivals' own rivals."""
+    is the robot's. ``scale``: metres per backbone unit of the rivals' own rivals."""
     best = None
     for T in rivals:
         if not prior.admits(T):
@@ -1010,7 +961,7 @@ def refine_pose(
     references at once, rotation and metric position (the references' known poses fix the scale),
     within ``max_rotation_deg`` about each axis, ``max_shift`` metres horizontally and
     ``max_height`` vertically of ``T_wq`` (a pose refined freely can slide to a wrong one that a
-    repeated texture supports as well: home's frame 22 went 10.5 deg off).
+    repeated texture supports as well).
     A pose a few centimetres or a degree off (from the prior, or one pair's rotation) explains few
     of the matches within the verification's 2 pixels; refined, the references that see the place
     explain it. Returns ``T_wq`` unchanged when fewer than 8 matches are given."""
@@ -1072,8 +1023,7 @@ def slide_on_ray(
     gains the support).
 
     A position that one pair's ray carries is only as right as the scale that placed it along
-    that ray (ground or rays; on home's temporal run frames 24, 104, 105 sat 0.13-0.31 m off
-    along a ray 0.1-0.2 deg right), while the references that ray does not pass through see the
+    that ray (ground or rays), while the references that ray does not pass through see the
     distance: their epipolar support (:func:`epipolar_support`, summed: a threshold per
     reference would make a step where one crosses it) peaks at the true place. Positions within
     ``ray_slide_max_shift`` metres of ``T_wq`` on the ray (steps of 2 cm, then 5 mm about the

@@ -15,17 +15,7 @@ Its unconfident visible pixels then get the plane's depth and a confidence above
 threshold (``OccupancyConfig.min_confidence``), ``fill_confidence`` x (0.8 + 0.2 x the inlier
 ratio's margin above ``min_inlier_ratio``). With ``snap_inliers`` the confident pixels on such a
 plane (its inliers) take the plane's depth too (the fit averages their matching noise away);
-confident pixels off the plane keep their own depth, and every confidence is kept. Snapping, on
-the right poses of the default perception runs (sweep re-run offline at the pipeline's pose and
-scale): home Acc / Comp 0.055 / 0.051 -> 0.050 / 0.050 m, hospital 0.051 / 0.041 -> 0.046 / 0.040
-m, +0.01 CPU s per frame; snapping every confident pixel of the segment (off-plane ones too)
-lowered Acc to 0.045 but raised Comp to 0.054 m on home (objects in front of a wall flattened).
-
-Measured on the home build (benchmarks/dense_depth.py, same load, fill off -> on): coverage 0.61 ->
-0.88, confident pixels > 10 % off 8.6 -> 9.2 %, shape-only Acc / Comp 0.055 / 0.067 -> 0.051 /
-0.048 m; ``vgpnav eval perception home``: Acc 0.060 -> 0.054 m, Comp 0.091 -> 0.075 m, lost 3 of
-50 both. About 23 ms per frame (160x120, median, 2 loaded cores). Adopting a neighbouring
-segment's plane for segments without enough support of their own gained < 0.001 m Comp.
+confident pixels off the plane keep their own depth, and every confidence is kept.
 """
 
 from __future__ import annotations

@@ -15,17 +15,8 @@ home build this check let the small window reach the coverage of a 7x7 window at
 outliers: Comp -0.009 m at equal Acc). Confidence = matching score * uniqueness * texture *
 visibility (0 where no reference sees the pixel; depth 0 there).
 
-Measured on the home build (benchmarks/dense_depth.py, 5 references, topk retrieval): confident
-coverage 0.61, 9 % of confident pixels > 10 % off, shape-only Acc / Comp 0.055 / 0.067 m
-(before: 0.57, 14 %, 0.087 / 0.098 with 3 references and one 7x7 window). Piecewise-planar
-completion (:mod:`.planar_fill`, ``SweepConfig.planar``, on by default) then fills unconfident
-pixels of well-fitted planar segments: coverage 0.88, 9 %, 0.051 / 0.048 m.
-
-Cost: the sweep is about half of the classical backbone's CPU time (~0.2 CPU s per call at 64
-planes). ``planes=48`` saves ~18 % of a frame's CPU time at equal depth quality on the frames
-localized in both runs (all 184 home queries: Acc / Comp 0.058 / 0.054 m both, recall at 5 cm /
-5 deg 0.799 both, gross errors 16 both) but lost one more frame (15 -> 16: a thin ground peak
-missed); 40 planes lost 16 and had 18 gross errors.
+Piecewise-planar completion (:mod:`.planar_fill`, ``SweepConfig.planar``, on by default) then fills
+unconfident pixels of well-fitted planar segments.
 """
 
 from __future__ import annotations
