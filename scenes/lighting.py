@@ -1,6 +1,6 @@
 """Lighting presets named by ``Scene.lighting``; the MuJoCo model builder and renderers read them.
 
-Meaning (agreed with ``scenes/model.py``, see ``scenes/README.md``): a uniform ``ambient`` term, a
+Meaning (agreed with ``scenes/model.py``, see ``docs/scenes.md``): a uniform ``ambient`` term, a
 camera ``headlight_diffuse``, and ``room_diffuse``, the diffuse light of the room lights (the
 MuJoCo model splits it over two tilted directional lights from above). No specular light, no
 shadows. ``dim`` is a darker query condition, ``warm`` a yellowish (tungsten-like) one, ``bright``
