@@ -24,7 +24,8 @@ missing, before the episodes start).
 
 An episode whose code raises is recorded with ``status: "error"`` and the message, and the run
 goes on (its scene's env is rebuilt for the next episode); summaries are over the ``ok``
-episodes and ``errors`` counts the others. ``--limit N`` runs the first N episodes only and marks
+episodes and ``errors`` counts the others. Undefined values (nan: a frame without a pose
+estimate) are written as null. ``--limit N`` runs the first N episodes only and marks
 the file ``complete: false``.
 """
 
@@ -60,6 +61,7 @@ from vgpnav_env.eval.records import (
     SCHEMA_VERSION,
     EpisodeLog,
     canonical,
+    json_safe,
     results_digest,
     validate_results,
 )
@@ -168,7 +170,7 @@ def bench_task(state: BenchWorker, item: tuple[int, TaskEpisode]) -> dict[str, A
         return {**head, "status": "error", "error": f"{type(e).__name__}: {e}"}
     out = {**head, "status": "ok", "error": None, **record.as_dict()}
     out["trajectory_sha256"] = trajectory_sha256(out)
-    return json.loads(canonical(out))  # exactly what the log gives back on --resume
+    return json.loads(canonical(json_safe(out)))  # exactly what the log gives back on --resume
 
 
 def episode_record(entry: dict[str, Any]) -> EpisodeRecord:
@@ -208,7 +210,7 @@ def summary_of(entries: list[dict[str, Any]]) -> dict[str, Any]:
         summary |= {m.frame_p95: None for m in _recorded() if m.frame_p95}
     summary["episodes"] = len(entries)
     summary["errors"] = len(entries) - len(ok)
-    return summary
+    return json_safe(summary)
 
 
 def git_commit() -> str | None:
@@ -297,6 +299,7 @@ def run_bench(run: BenchRun, workers: Workers | None = None) -> dict[str, Any]:
     """Run the benchmark (module docstring); returns the results file's content."""
     clock = RunClock()
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    commit = git_commit()  # of the code that runs, whatever changes in the checkout meanwhile
     task = run.task
     episodes = run.episodes or load_episodes(task, run.split)
     chosen = list(episodes.episodes[: run.limit] if run.limit else episodes.episodes)
@@ -336,7 +339,7 @@ def run_bench(run: BenchRun, workers: Workers | None = None) -> dict[str, Any]:
         if own:
             workers.close()
     entries = [done[e.episode_id] for e in chosen]
-    results = results_file(task, run, episodes, settings, entries)
+    results = results_file(task, run, episodes, settings, entries, commit)
     results["run"] = {
         "workers": workers.where,
         "wall_s": round(clock.wall(), 1),
@@ -352,7 +355,12 @@ def run_bench(run: BenchRun, workers: Workers | None = None) -> dict[str, Any]:
 
 
 def results_file(
-    task: Task, run: BenchRun, episodes: EpisodeSet, settings: dict[str, Any], entries: list[dict[str, Any]]
+    task: Task,
+    run: BenchRun,
+    episodes: EpisodeSet,
+    settings: dict[str, Any],
+    entries: list[dict[str, Any]],
+    commit: str | None,
 ) -> dict[str, Any]:
     """The compared part of the results file (everything but ``run`` and ``digest``)."""
     scenes = {}
@@ -370,7 +378,7 @@ def results_file(
             "generator": episodes.generator,
         },
         "package_version": package_version(),
-        "git_commit": git_commit(),
+        "git_commit": commit,
         "settings": settings,
         "complete": len(entries) == len(episodes),
         "limit": run.limit,

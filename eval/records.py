@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -111,6 +112,18 @@ RESULTS_SCHEMA: dict[str, Any] = {
 def canonical(data: Any) -> bytes:
     """The canonical JSON bytes of ``data`` (sorted keys, no spaces, shortest float repr)."""
     return json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+
+def json_safe(data: Any) -> Any:
+    """``data`` with every non-finite float (nan: a frame without an estimate) as None, so that
+    it is standard JSON."""
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    if isinstance(data, dict):
+        return {k: json_safe(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [json_safe(v) for v in data]
+    return data
 
 
 def results_digest(results: dict[str, Any]) -> str:
