@@ -61,6 +61,13 @@ class EpisodeRules:
     per_scene: dict[str, int]
     generator: dict[str, Any]
 
+    def __post_init__(self) -> None:
+        keys = ("name", "version", "seed", "min_geodesic_m", "max_geodesic_m", "straight_ratio",
+                "straight_reject_prob")  # fmt: skip
+        missing = [k for k in keys if k not in self.generator]
+        if missing:
+            raise ValueError(f"episodes.generator lacks {missing}")
+
     @property
     def sampler_params(self) -> dict[str, float]:
         """The keyword arguments of :func:`~vgpnav_env.envs.episodes.sample_episode`."""
@@ -217,7 +224,6 @@ def parse_task(data: dict[str, Any], path: Path, sha256: str) -> Task:
             path=path,
             sha256=sha256,
         )
-        task.episodes.sampler_params.items()  # every generator parameter is present
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"task file {path}: missing or malformed field {e}") from e
     if task.motion_noise != "none":
