@@ -1,7 +1,7 @@
 """PPO (stable-baselines3) over VGP-Nav observations: training, evaluation and the learning curve.
 
-``vgpnav train ppo SCENE [SCENE ...] --steps N --envs E --out DIR [--perception model|BACKBONE]
-[--resume]`` writes
+``vgpnav train ppo SCENE [SCENE ...] | --task TASK [--split train] --steps N --envs E --out DIR
+[--perception model|BACKBONE] [--resume]`` writes
 
 - ``DIR/config.json``: the :func:`vgpnav_env.make_env` config of the training env (scenes,
   perception, env keyword arguments) and the seed,
@@ -30,7 +30,9 @@ the success distance. The reward is Habitat's (decrease of the geodesic distance
 blocked step (:class:`EndPenalty`);
 the stop action starts unlikely (:data:`STOP_LOGIT`) so that early episodes explore instead of
 stopping at once. Without a perception the policy sees the raw env (camera image + world goal).
-``vgpnav eval navigation SCENE --agent ppo:DIR [--perception P]`` evaluates a trained policy.
+``vgpnav eval navigation SCENE --agent ppo:DIR [--perception P]`` evaluates a trained policy;
+``--task pointnav-v1`` trains on the task's train split (its scenes and rules, the recipe's image size
+and episode length) and ``vgpnav bench pointnav-v1 --split test --agent ppo:DIR`` reports it on test.
 """
 
 from __future__ import annotations
@@ -573,7 +575,17 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """CLI arguments of ``vgpnav train ppo``."""
     parser.add_argument(
-        "scene", nargs="+", help="one or more scene sources (home, home:7, ...): one per episode"
+        "scene", nargs="*", help="one or more scene sources (home, home:7, ...): one per episode"
+    )
+    parser.add_argument(
+        "--task",
+        default=None,
+        help="train on a benchmark task's split instead of SCENEs (e.g. pointnav-v1): its scenes and "
+        "its rules (actions, camera, robot, success radius, layout); the recipe keeps its own image "
+        "size and episode length",
+    )
+    parser.add_argument(
+        "--split", choices=("train", "val"), default="train", help="the --task split (default train)"
     )
     parser.add_argument("--steps", type=positive_int_arg, default=100_000, help="total env steps")
     parser.add_argument("--envs", type=positive_int_arg, default=2, help="parallel envs")
@@ -655,8 +667,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: Task rules the training recipe keeps its own values of (evaluation uses the task's).
+RECIPE_OWN = ("image_size", "max_steps", "min_geodesic", "max_geodesic")
+
+
+def task_training(task_name: str, split: str) -> tuple[list[str], dict[str, Any]]:
+    """(scene sources, env keyword arguments) of a benchmark task's split for training: the
+    task's rules but :data:`RECIPE_OWN` (``vgpnav bench TASK --agent ppo:DIR`` evaluates under the
+    task's full rules)."""
+    from vgpnav_env.tasks import load_task
+    from vgpnav_env.tasks.splits import scene_source
+
+    task = load_task(task_name)
+    scenes = [scene_source(s) for s in task.scenes(split)]
+    return scenes, {k: v for k, v in task.env_kwargs().items() if k not in RECIPE_OWN}
+
+
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vgpnav train ppo``; returns the process exit code."""
+    env_kwargs = None
+    if args.task is not None:
+        if args.scene:
+            raise ValueError("give SCENEs or --task, not both")
+        args.scene, env_kwargs = task_training(args.task, args.split)
+    elif not args.scene:
+        raise ValueError("give one or more SCENEs or --task TASK")
     if args.database is not None and not args.database.is_dir():
         raise ValueError(f"--database {args.database}: no such build directory (make one with vgpnav build)")
     if args.perception == "learned":
@@ -695,6 +730,7 @@ def run(args: argparse.Namespace) -> int:
         args.scene,
         args.steps,
         args.out,
+        env_kwargs=env_kwargs,
         n_envs=args.envs,
         perception=args.perception,
         resume=args.resume,

@@ -1,12 +1,13 @@
 """``vgpnav report DIR [DIR ...] --out OUT``: several evaluation runs side by side.
 
-Reads the ``report.json`` every ``vgpnav eval`` command writes and puts the runs next to each
-other (e.g. backbones, modes, scenes, agents): one Markdown table of the settings (one column per
-run), one of the metrics (every number at the top level of the reports, and one level into
-dictionaries such as ``failures`` or ``seconds_per_frame``; per-episode / per-frame records are
-left out), and ``comparison.png`` with one small bar chart per metric that at least two runs
-have. Writes ``OUT/report.md`` + ``OUT/report.json`` + ``OUT/comparison.png``; a directory
-without a readable ``report.json`` is refused (exit 2) before anything is written.
+Reads the ``report.json`` every ``vgpnav eval`` and ``vgpnav bench`` command writes and puts the
+runs next to each other (e.g. backbones, modes, scenes, agents): one Markdown table of the
+settings (one column per run), one of the metrics (every number at the top level of the reports,
+and one level into dictionaries such as ``failures`` or ``seconds_per_frame``; per-episode /
+per-frame records are left out), ``vgpnav bench`` results also as leaderboard rows, and
+``comparison.png`` with one small bar chart per metric that at least two runs have. Writes
+``OUT/report.md`` + ``OUT/report.json`` + ``OUT/comparison.png``; a directory without a readable
+``report.json`` is refused (exit 2) before anything is written.
 """
 
 from __future__ import annotations
@@ -126,6 +127,7 @@ def compare(directories: Sequence[Path], out: Path, clock: RunClock | None = Non
     header = ["", *names]
     sections = [
         "## Runs\n\n" + links,
+        *leaderboard_section(reports),
         "## Settings of the runs\n\n" + markdown_table(header, settings_rows),
         "## Metrics\n\n" + markdown_table(header, metric_rows),
     ]
@@ -144,6 +146,18 @@ def compare(directories: Sequence[Path], out: Path, clock: RunClock | None = Non
         settings={"runs": len(reports), **run_settings(clock)},
     )
     return content
+
+
+def leaderboard_section(reports: Sequence[Mapping[str, Any]]) -> list[str]:
+    """A ``## Leaderboard`` section with one row per ``vgpnav bench`` results file among the
+    reports (none without one)."""
+    from vgpnav_env.eval.bench import leaderboard_row
+    from vgpnav_env.eval.records import SCHEMA
+
+    rows = [leaderboard_row(dict(r)) for r in reports if r.get("schema") == SCHEMA]
+    if not rows:
+        return []
+    return ["## Leaderboard\n\n" + markdown_table(rows[0][0], [row for _, row in rows])]
 
 
 def _cell(value: Any) -> Any:

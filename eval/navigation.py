@@ -188,7 +188,8 @@ class AgentPlan:
     """What running an ``--agent`` takes: its ``name`` (:data:`vgpnav_env.agents.AGENTS`), the
     perception ``backbone`` it drives on (None: none), the env keyword arguments it needs, and for
     a PPO policy the ``model`` file, the ``database_dir`` it was trained with and how it picks its
-    ``actions`` (:data:`ACTION_KINDS`)."""
+    ``actions`` (:data:`ACTION_KINDS`); for an agent from outside the package its ``factory``
+    (``MODULE:FACTORY``, :mod:`vgpnav_env.agents.external`)."""
 
     name: str
     backbone: str | None
@@ -196,6 +197,7 @@ class AgentPlan:
     model: Path | None = None
     database_dir: str | None = None
     actions: str = "deterministic"
+    factory: str | None = None
 
     @property
     def description(self) -> str:
@@ -253,6 +255,8 @@ def plan_agent(
         return AgentPlan(name, chosen, env_kwargs, model, actions=actions)
     if name == "oracle":
         return AgentPlan(name, None, {"render_rgb": False})
+    if name == "external":  # the raw observation unless --perception says otherwise
+        return AgentPlan(name, chosen, factory=path)
     return AgentPlan(name, (chosen or backbone) if AGENTS[name].perception else None)
 
 
@@ -262,6 +266,10 @@ def make_policy(plan: AgentPlan, env: gym.Env) -> Policy:
         return OracleAgent(env)
     if plan.name == "astar":
         return PerceptionAStar(env)
+    if plan.name == "external":
+        from vgpnav_env.agents.external import ExternalPolicy
+
+        return ExternalPolicy(plan.factory, env)
     return ppo.SB3Policy(
         plan.model, env, sample=plan.actions == "sampled", escape_loops=plan.actions == "escape-loops"
     )
@@ -675,10 +683,15 @@ def evaluate_policy(
 
 
 def agent_arg(text: str) -> str:
-    """argparse type of ``--agent``: a registered name, or ``ppo:PATH`` with a model there."""
+    """argparse type of ``--agent``: a registered name, ``ppo:PATH`` with a model there, or an
+    importable ``MODULE:FACTORY``."""
     try:
         name, path = parse_agent(text)
-        if path is not None:
+        if name == "external":
+            from vgpnav_env.agents.external import load_factory
+
+            load_factory(path)
+        elif path is not None:
             ppo.load_config(ppo.model_path(path))
     except (ValueError, FileNotFoundError) as e:
         raise argparse.ArgumentTypeError(str(e)) from e

@@ -327,12 +327,16 @@ class QueryRun:
         return cls(build_dir, args.backbone, options, config, args.queries, args.seed, mode)
 
     def settings(self) -> dict[str, Any]:
-        """The report's settings: build, query layout and image size, backbone, perception mode,
-        the ablation switches, the query frames and the seed."""
+        """The report's settings: build, its scene's perception split (tuning or held-out,
+        :func:`~vgpnav_env.tasks.splits.perception_split`), query layout and image size, backbone,
+        perception mode, the ablation switches, the query frames and the seed."""
+        from vgpnav_env.tasks.splits import perception_split
+
         meta = read_run_meta(Path(self.build_dir) / "query")
         n = len(query_subset(meta["n_frames"], self.n_queries))
         return {
             "build": str(self.build_dir),
+            "perception split": perception_split(str(meta.get("scene", ""))),
             "layout": meta["layout"],
             "image size": f"{meta['width']}x{meta['height']}",
             "backbone": self.backbone,

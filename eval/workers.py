@@ -60,6 +60,8 @@ T = TypeVar("T")
 R = TypeVar("R")
 Setup = Callable[[], Any]
 Task = Callable[[Any, Any], Any]
+#: Called with (item index, result) as each task finishes.
+Done = Callable[[int, Any], None]
 
 #: ``--ray`` without an address: start a local Ray instance with ``--workers`` CPUs.
 LOCAL_RAY = "local"
@@ -202,23 +204,35 @@ class Workers:
             self._ray.shutdown()
             self._ray_started = False
 
-    def map(self, setup: Setup, task: Task, items: Sequence[Any], desc: str | None = None) -> list[Any]:
-        """``[task(state, item) for item in items]`` with one state per worker (module docstring)."""
+    def map(
+        self,
+        setup: Setup,
+        task: Task,
+        items: Sequence[Any],
+        desc: str | None = None,
+        on_result: Done | None = None,
+    ) -> list[Any]:
+        """``[task(state, item) for item in items]`` with one state per worker (module docstring).
+        ``on_result(i, result)`` is called in this process as each task finishes (in the order
+        they finish), e.g. to write a record before the others are done."""
         items = list(items)
         if not items:
             return []
         key = _key(setup)
         bar = tqdm(total=len(items), desc=desc, disable=not self.progress, unit="task")
+        done = on_result or (lambda i, result: None)
         try:
             if self.ray_address is not None:
-                return self._map_ray(key, setup, task, items, bar)
+                return self._map_ray(key, setup, task, items, bar, done)
             if self.workers == 1:
-                return self._map_here(key, setup, task, items, bar)
-            return self._map_processes(key, setup, task, items, bar)
+                return self._map_here(key, setup, task, items, bar, done)
+            return self._map_processes(key, setup, task, items, bar, done)
         finally:
             bar.close()
 
-    def _map_here(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+    def _map_here(
+        self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm, done: Done
+    ) -> list[Any]:
         global _NOTES
         if self._local is None or self._local[0] != key:
             if self._local is not None:
@@ -233,14 +247,17 @@ class Workers:
 
         _NOTES = show
         try:
-            for item in items:
+            for i, item in enumerate(items):
                 results.append(task(self._local[1], item))
+                done(i, results[-1])
                 bar.update()
         finally:
             _NOTES = None
         return results
 
-    def _map_processes(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+    def _map_processes(
+        self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm, done: Done
+    ) -> list[Any]:
         if self._pool is None:  # processes start on demand, at most one per pending task
             context = get_context("spawn")
             cores = tuple(sorted(os.sched_getaffinity(0))) if hasattr(os, "sched_setaffinity") else None
@@ -257,12 +274,13 @@ class Workers:
         shown: dict[int, str] = {}
         try:
             while pending:
-                done, pending = wait(pending, timeout=NOTE_POLL_S, return_when=FIRST_COMPLETED)
+                finished, pending = wait(pending, timeout=NOTE_POLL_S, return_when=FIRST_COMPLETED)
                 for pid, text in _drain(self._notes):
                     _show_notes(bar, shown, pid, text)
-                for future in done:
+                for future in finished:
                     results[futures[future]], cpu = future.result()
                     self.cpu_seconds += cpu
+                    done(futures[future], results[futures[future]])
                     bar.update()
         except BaseException:
             for future in pending:
@@ -270,7 +288,9 @@ class Workers:
             raise
         return results
 
-    def _map_ray(self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm) -> list[Any]:
+    def _map_ray(
+        self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm, done: Done
+    ) -> list[Any]:
         ray = self._connect_ray()
         remote = ray.remote(num_cpus=1)(_run)
         setup_ref = ray.put(setup)
@@ -280,10 +300,11 @@ class Workers:
         pending = list(refs)
         try:
             while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                for ref in done:
+                finished, pending = ray.wait(pending, num_returns=1)
+                for ref in finished:
                     results[index[ref]], cpu = ray.get(ref)
                     self.cpu_seconds += cpu
+                    done(index[ref], results[index[ref]])
                     bar.update()
         except BaseException:
             for ref in pending:

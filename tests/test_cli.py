@@ -224,6 +224,16 @@ BAD_INPUTS = [
     ("calibrate home --backbone nope", "invalid choice: 'nope'"),
     ("report MISSING", "no report.json"),
     ("report EMPTY", "no report.json"),
+    ("bench nonesuch-v9", "unknown task 'nonesuch-v9'"),
+    ("bench pointnav-v1 --split dev", "invalid choice: 'dev'"),
+    ("bench pointnav-v1 --agent no_such_module_xyz:Agent", "cannot import no_such_module_xyz"),
+    ("bench pointnav-v1 --agent bench_agents:Nothing", "has no callable 'Nothing'"),
+    ("bench pointnav-v1 --limit 0", "--limit: must be a positive integer"),
+    ("bench pointnav-v1 --database home=MISSING", "expected SCENE=DIR"),
+    ("episodes generate nonesuch-v9 --split test", "unknown task 'nonesuch-v9'"),
+    ("episodes generate pointnav-v1", "--split"),
+    ("train ppo --steps 10", "give one or more SCENEs or --task"),
+    ("train ppo home --task pointnav-v1", "SCENEs or --task, not both"),
 ]
 
 
@@ -247,6 +257,7 @@ def test_every_command_refuses_bad_input_in_one_line_and_writes_nothing(
 
 
 def test_every_command_is_in_the_bad_input_table() -> None:
-    tested = {" ".join(line.split()[:2]) if line.startswith(("eval", "train")) else line.split()[0]
+    groups = ("eval", "train", "episodes")
+    tested = {" ".join(line.split()[:2]) if line.startswith(groups) else line.split()[0]
               for line, _ in BAD_INPUTS}  # fmt: skip
     assert tested == set(cli.COMMANDS)

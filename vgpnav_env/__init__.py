@@ -15,6 +15,9 @@ def _register_envs() -> None:
 
     if "VGPNav/PointGoal-v0" not in gymnasium.registry:
         gymnasium.register("VGPNav/PointGoal-v0", entry_point="vgpnav_env.envs.pointgoal:PointGoalEnv")
+    from vgpnav_env.tasks import register_tasks
+
+    register_tasks()  # VGPNav/PointNav-v1, ...: vgpnav_env.tasks
 
 
 _register_envs()

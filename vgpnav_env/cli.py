@@ -40,11 +40,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "train ppo": ("vgpnav_env.agents.ppo", "train PPO (stable-baselines3) on VGP-Nav observations"),
     "report": ("vgpnav_env.eval.compare", "put several eval runs side by side (tables and plots)"),
+    "episodes generate": ("vgpnav_env.tasks.episodes", "write a task split's fixed episode file"),
+    "bench": ("vgpnav_env.eval.bench", "run a versioned task's split: one results file (vgpnav report)"),
 }
 #: One-line help of command groups.
 GROUPS: dict[str, str] = {
     "eval": "run a benchmark protocol and write its report",
     "train": "train a navigation policy",
+    "episodes": "a benchmark task's fixed episode datasets",
 }
 PROG = "vgpnav"
 
