@@ -36,7 +36,8 @@ def blocks(text: str, language: str) -> list[str]:
 
 def readme_commands() -> list[list[str]]:
     """Each ``vgpnav`` command the README names (``eval navigation``, ``build``, ...), once."""
-    found = re.findall(r"`vgpnav ((?:eval|train) [a-z]+|[a-z]+)\b", README)
+    groups = "|".join(cli.GROUPS)
+    found = re.findall(rf"`vgpnav ((?:{groups}) [a-z]+|[a-z]+)\b", README)
     return [name.split() for name in dict.fromkeys(found)]
 
 
