@@ -93,9 +93,12 @@ def posed_depth(
     depths_m: NDArray[np.float64],
     sweep: SweepConfig | None = None,
     threads: int = 1,
+    timings: dict[str, float] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Metric query z-depth (H, W; 0 where unknown) and confidence of the plane sweep of ``query``
     at ``T_wc`` against ``references`` at their poses ``T_wi`` (k, 4, 4), over the range of the
-    depths ``depths_m`` (metres, e.g. the query's first points)."""
+    depths ``depths_m`` (metres, e.g. the query's first points); ``timings`` as in
+    :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`."""
     T_iq = invert_pose(np.asarray(T_wi, float)) @ np.asarray(T_wc, float)
-    return plane_sweep(query, references, T_iq, camera, np.asarray(depths_m, float), sweep, threads=threads)
+    depths = np.asarray(depths_m, float)
+    return plane_sweep(query, references, T_iq, camera, depths, sweep, threads=threads, timings=timings)

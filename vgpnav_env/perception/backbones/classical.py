@@ -471,10 +471,12 @@ class _StageClock:
         self.timings = timings
         self.wall, self.cpu = time.perf_counter(), time.process_time()
 
-    def lap(self, stage: str) -> None:
+    def lap(self, stage: str, less: str | None = None) -> None:
+        """Close ``stage`` (less the seconds already written to the sub-stage ``less``)."""
         wall, cpu = time.perf_counter(), time.process_time()
-        self.timings[stage] = wall - self.wall
-        self.timings[f"{stage}_cpu"] = cpu - self.cpu
+        inner, inner_cpu = self.timings.get(less, 0.0), self.timings.get(f"{less}_cpu", 0.0)
+        self.timings[stage] = wall - self.wall - inner
+        self.timings[f"{stage}_cpu"] = cpu - self.cpu - inner_cpu
         self.wall, self.cpu = wall, cpu
 
 
@@ -523,19 +525,26 @@ class ClassicalBackbone(Backbone):
             self._query_memo = _QueryMemo(key, rootsift(query, self.config))
         return self._query_memo
 
+    def match(self, fq: Features, fr: Features) -> NDArray[np.int64]:
+        """Putative matches (m, 2) query / reference feature indices (:func:`match_descriptors`)."""
+        return match_descriptors(fq.descriptors, fr.descriptors, self.config.ratio, self.config.mutual)
+
     def relative_pose(
         self,
         fq: Features,
         fr: Features,
         camera: PinholeCamera,
         expected_T_iq: NDArray[np.float64] | None = None,
+        matches: NDArray[np.int64] | None = None,
     ) -> tuple[PairGeometry | None, int, NDArray[np.float32]]:
         """Two-view geometry of one pair (None when it fails), its verified match count and its
         putative matches (m, 4) float32 pixels ``(u_q, v_q, u_r, v_r)``. ``expected_T_iq`` (4, 4):
         the query's expected pose in the reference camera (metric), for a prior-guided pair
-        (module docstring; None: RANSAC alone)."""
+        (module docstring; None: RANSAC alone). ``matches``: the pair's :meth:`match` when already
+        computed."""
         cfg = self.config
-        matches = match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
+        if matches is None:
+            matches = self.match(fq, fr)
         pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
         pixels = np.hstack([pq, pr]).astype(np.float32)
         guided = expected_T_iq is not None and cfg.guided_min_inliers is not None
@@ -714,12 +723,15 @@ class ClassicalBackbone(Backbone):
         if expected is not None:  # a pair's result depends on its expected pose too
             keys = [None if key is None else (key, expected[i].tobytes()) for i, key in enumerate(keys)]
         todo = [i for i, key in enumerate(keys) if key is None or key not in memo.pairs]
+        threads = self.config.threads
+        matched = thread_map(lambda i: self.match(memo.features, frefs[i]), todo, threads)
+        clock.lap("matching")
         computed = thread_map(
-            lambda i: self.relative_pose(
-                memo.features, frefs[i], camera, None if expected is None else expected[i]
+            lambda job: self.relative_pose(
+                memo.features, frefs[job[0]], camera, None if expected is None else expected[job[0]], job[1]
             ),
-            todo,
-            self.config.threads,
+            list(zip(todo, matched, strict=True)),
+            threads,
         )
         fresh = dict(zip(todo, computed, strict=True))
         for i in todo:
@@ -761,8 +773,9 @@ class ClassicalBackbone(Backbone):
                 sparse,
                 self.config.sweep,
                 threads=self.config.threads,
+                timings=timings,
             )
-        clock.lap("plane_sweep")
+        clock.lap("plane_sweep", less="completion")
         if not confidence.any():
             log.debug("classical backbone: no reference pair passed (matches %s)", n_matches.tolist())
         return BackboneOutput(
