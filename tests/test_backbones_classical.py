@@ -156,9 +156,9 @@ def test_a_second_call_on_the_same_query_reuses_its_features_and_pairs(scene, mo
     calls = []
     original = ClassicalBackbone.relative_pose
 
-    def counting(self, fq, fr, camera, expected_T_iq=None):
+    def counting(self, fq, fr, camera, expected_T_iq=None, matches=None):
         calls.append(fr)
-        return original(self, fq, fr, camera, expected_T_iq)
+        return original(self, fq, fr, camera, expected_T_iq, matches)
 
     monkeypatch.setattr(ClassicalBackbone, "relative_pose", counting)
     first = backbone(scene["query"], scene["refs"][:3], CAMERA, reference_keys=[0, 1, 2])

@@ -333,12 +333,37 @@ def sampson_distance(
         return np.abs(num) / np.sqrt(den)
 
 
+_planes_lock = threading.Lock()
+_planes: OrderedDict[bytes, NDArray[np.bool_]] = OrderedDict()
+_PLANES_ITEMS = 256
+
+
 def dominant_plane(pq: NDArray[np.floating], pr: NDArray[np.floating], threshold: float) -> NDArray[np.bool_]:
     """(m,) which of the matched pixels ``pq`` -> ``pr`` (m, 2) one homography explains (OpenCV
     RANSAC, ``threshold`` pixels): a dominant plane, which leaves the 5-point pose ambiguous and
-    fits a wall's texture at more than one place."""
-    _, mask = cv2.findHomography(pq, pr, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
-    return mask.ravel().astype(bool) if mask is not None else np.zeros(len(pq), bool)
+    fits a wall's texture at more than one place.
+
+    OpenCV's RANSAC is deterministic and works on float32 pixels, so the masks of the last few
+    hundred calls are kept by content: the backbone's planarity test and every verification of the
+    same pair's matches fit the homography once (the same mask)."""
+    pq32 = np.ascontiguousarray(pq, np.float32).reshape(-1, 2)
+    pr32 = np.ascontiguousarray(pr, np.float32).reshape(-1, 2)
+    digest = hashlib.blake2b(np.float64(threshold).tobytes(), digest_size=16)
+    digest.update(pq32.data)
+    digest.update(pr32.data)
+    key = digest.digest()
+    with _planes_lock:
+        mask = _planes.get(key)
+        if mask is not None:
+            _planes.move_to_end(key)
+            return mask.copy()
+    _, found = cv2.findHomography(pq32, pr32, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
+    mask = found.ravel().astype(bool) if found is not None else np.zeros(len(pq32), bool)
+    with _planes_lock:
+        _planes[key] = mask
+        while len(_planes) > _PLANES_ITEMS:
+            _planes.popitem(last=False)
+    return mask.copy()
 
 
 @dataclass(frozen=True)
