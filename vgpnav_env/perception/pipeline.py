@@ -444,7 +444,7 @@ class Perceiver:
         with clock.stage("occupancy.posed_depth"):
             depth, confidence = posed_depth(
                 rgb, [db.images[i] for i in refs], db.poses[refs], T_wc, self.camera, depths,
-                net.config.sweep, threads=net.config.threads, timings=sweep,
+                cfg.sweep, threads=net.config.threads, timings=sweep,
             )  # fmt: skip
         # The completion apart from the sweep proper.
         clock.add(

@@ -24,7 +24,7 @@ sweep at the true pose: home 0.044 / 0.036 m (the remaining error is mostly the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +37,9 @@ from vgpnav_env.perception.retrieval import nearby_cameras
 @dataclass(frozen=True)
 class PosedDepthConfig:
     """The re-sweep after localization (module docstring); ``enabled`` False keeps the backbone's
-    depth. ``sample_stride``: every that many of the first points score the overlap."""
+    depth. ``sample_stride``: every that many of the first points score the overlap. ``sweep``: the
+    plane sweep's settings (the map's depth; the backbone's own sweep, which serves the ground
+    peak, has its own in :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig`)."""
 
     enabled: bool = True
     references: int = 5
@@ -46,6 +48,7 @@ class PosedDepthConfig:
     min_baseline: float = 0.15
     distance_weight: float = 0.1
     sample_stride: int = 7
+    sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def __post_init__(self) -> None:
         if self.references < 1 or self.sample_stride < 1:

@@ -31,7 +31,11 @@ overrule the images), and the pipeline verifies the pose the pairs give.
 
 A dense query depth comes from :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`
 against the widest-baseline of the most confident linked references (see that module for the
-method and its confidence).
+method and its confidence), by default at a quarter of the image size (:data:`BACKBONE_SWEEP`):
+the pipeline reads it for the ground peak (the metric scale) and the frame's first points, while
+the map's depth is swept again at the localized pose at the map's resolution
+(:mod:`~vgpnav_env.perception.posed_depth`). The coarse sweep costs a quarter of the half-size
+one; its effect on localization is in ``benchmarks/speed.md``.
 
 Speed: the pairs and the sweep's plane chunks run on ``ClassicalConfig.threads`` threads (OpenCV,
 poselib and numpy release the GIL; results do not depend on the count); a query image's RootSIFT
@@ -67,6 +71,11 @@ from vgpnav_env.perception.backbones.threads import thread_map
 log = logging.getLogger(__name__)
 
 
+#: The backbone's sweep (module docstring): 80x60 at 320x240, NCC windows of 3 and 5 pixels (about
+#: the image area of the map sweep's 5 and 11 pixels at half size).
+BACKBONE_SWEEP = SweepConfig(scale=0.25, ncc_window=3, check_window=5)
+
+
 @dataclass(frozen=True)
 class ClassicalConfig:
     """Knobs of the classical backbone (pixels are full-resolution unless stated).
@@ -80,7 +89,8 @@ class ClassicalConfig:
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
     ``sweep_references`` by baseline among the ``sweep_candidates`` most confident) and the
-    :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep``. ``threads``: the
+    :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep`` (default
+    :data:`BACKBONE_SWEEP`; module docstring). ``threads``: the
     independent pairs and plane-sweep chunks run on that many threads (0 = every available core,
     1 = serial; results are the same). Prior-guided pairs (module docstring): ``guided_min_inliers``
     (None: expected poses are ignored), ``guided_min_share`` (the guided pose needs at least this
@@ -113,7 +123,7 @@ class ClassicalConfig:
     unlinked_confidence_factor: float = 0.5
     sweep_candidates: int = 5
     sweep_references: int = 5
-    sweep: SweepConfig = field(default_factory=SweepConfig)
+    sweep: SweepConfig = field(default_factory=lambda: BACKBONE_SWEEP)
     threads: int = 0
     guided_min_inliers: int | None = 15
     guided_min_share: float = 0.5
