@@ -334,7 +334,14 @@ def run_bench(run: BenchRun, workers: Workers | None = None) -> dict[str, Any]:
             log.append(entry)
             done[entry["episode_id"]] = entry
 
-        workers.map(setup, bench_task, todo, f"bench {task.name} {run.split} {run.agent}", finished)
+        workers.map(
+            setup,
+            bench_task,
+            todo,
+            f"bench {task.name} {run.split} {run.agent}",
+            cost=[e.geodesic for _, e in todo],  # the longest first, so the last does not run alone
+            on_result=finished,
+        )
     finally:
         if own:
             workers.close()

@@ -467,6 +467,13 @@ def episode_task(state: Navigator, item: tuple[int, int]) -> tuple[EpisodeRecord
     return record, episode_png(state.env, record) if state.plots else None
 
 
+def geodesic_task(state: Navigator, item: tuple[int, int]) -> float:
+    """The geodesic distance (metres) of episode ``(index, seed)``: the order of the episodes'
+    costs (the env's reset alone, no perception)."""
+    state.env.unwrapped.reset(seed=item[1])
+    return float(state.env.unwrapped.episode.geodesic)
+
+
 def navigation_settings(
     scene: str,
     plan: AgentPlan,
@@ -558,12 +565,15 @@ def evaluate_navigation(
     own = workers is None
     workers = workers or Workers(1, progress=progress)
     try:
+        several = workers.workers > 1 or workers.ray_address is not None
         if plan.backbone not in (None, "model"):
-            several = workers.workers > 1 or workers.ray_address is not None
             wrapper_kwargs = prepare_database(scene, kwargs, wrapper_kwargs, progress, several)
         setup = NavigationSetup(plan, kwargs, wrapper_kwargs, plots=out_dir is not None)
         items = [(i, seed + i) for i in range(episodes)]
-        results = workers.map(setup, episode_task, items, desc=f"navigation {scene} {agent}")
+        # Several workers: the longest episodes first, so that the last one does not run alone.
+        ordered = several and episodes > workers.workers
+        cost = workers.map(setup, geodesic_task, items, desc="episode lengths") if ordered else None
+        results = workers.map(setup, episode_task, items, desc=f"navigation {scene} {agent}", cost=cost)
     finally:
         if own:
             workers.close()

@@ -630,8 +630,7 @@ def _record(
         n_references=len(result.references),
         n_confident_pairs=result.n_confident_pairs,
         n_points=len(result.points_w),
-        timings=dict(result.timings)
-        | {f"backbone.{k}": v for k, v in (result.backbone.timings if result.backbone else {}).items()},
+        timings=dict(result.timings),
         detail=result.detail,
         candidate_translation_m=candidate[0],
         candidate_rotation_deg=candidate[1],

@@ -1,18 +1,22 @@
-"""Timing protocol: seconds per frame of every VGP-Nav module (paper Table VI).
+"""Timing protocol: seconds per frame of every VGP-Nav module (paper Table VI) and of its steps.
 
-``vgpnav eval timing SCENE --backbone B [--queries N] [--k 10] --out DIR [--build DIR]``
+``vgpnav eval timing SCENE --backbone B [--queries N] [--k 10] [--perception-mode M] --out DIR``
 
 Runs the pipeline in this one process (parallel workers would time their sharing of the cores) over
 ``N`` evenly spaced query frames (the first frame warms up caches and is not timed) and reports,
 over the frames that localized (all frames if none did; a lost frame skips the later stages), per
-stage (retrieval, backbone, motion_averaging, scale_recovery, occupancy, total) the median wall
-seconds (``seconds_per_frame``, with the 90th percentile) and the median CPU seconds of the process
-over all its threads (``cpu_seconds_per_module``; the whole call: ``cpu_seconds_per_frame``) beside
-the paper's figures (VGGT on an RTX 5090), plus the backbone's own breakdown when it reports one
-(``backbone_seconds``, wall and ``*_cpu``). Wall time is what a robot waits; it drops below the CPU
-time when the backbone's threads run on several free cores and rises above it when other processes
-share the cores (the report records the CPU count and the load average). CPU seconds are less
-sensitive to that load.
+stage (retrieval, backbone, motion_averaging, scale_recovery, verification, occupancy, total) the
+median wall seconds (``seconds_per_frame``, with the 90th percentile) and the median CPU seconds of
+the process over all its threads (``cpu_seconds_per_module``; the whole call:
+``cpu_seconds_per_frame``) beside the paper's figures (VGGT on an RTX 5090), and the steps inside
+the stages (``steps``: mean wall and CPU seconds per frame over the same frames, summed over a
+frame's rounds), e.g. the classical backbone's ``features``, ``matching``, ``two_view``,
+``scale_linking``, ``plane_sweep`` and ``completion`` and the occupancy's ``posed_depth``,
+``completion`` and ``fusion``. ``threads`` records the thread pools the process used
+(:func:`~vgpnav_env.perception.backbones.threads.thread_report`). Wall time is what a robot waits;
+it drops below the CPU time when the backbone's threads run on several free cores and rises above
+it when other processes share the cores (the report records the CPU count and the load average).
+CPU seconds are less sensitive to that load.
 """
 
 from __future__ import annotations
@@ -26,11 +30,13 @@ from matplotlib.figure import Figure
 
 from vgpnav_env.eval.perception_runs import (
     QueryRun,
+    add_perception_mode_argument,
     add_pipeline_arguments,
     add_scene_arguments,
     query_records,
 )
 from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
+from vgpnav_env.perception.backbones.threads import thread_report
 from vgpnav_env.perception.pipeline import TIMING_KEYS
 
 #: Paper Table VI, seconds per frame (VGGT backbone, RTX 5090); verification and occupancy are not
@@ -58,13 +64,21 @@ def evaluate_timing(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
 
     wall = {k: np.array([r.timings.get(k, np.nan) for r in used], float) for k in TIMING_KEYS}
     cpu_keys = {k: "cpu" if k == "total" else f"{k}_cpu" for k in TIMING_KEYS}
-    sub = sorted({k for r in used for k in r.timings if k.startswith("backbone.")})
+    steps = sorted({k for r in used for k in r.timings if "." in k and not k.endswith("_cpu")})
     return {
         "seconds_per_frame": {k: float(np.nanmedian(v)) for k, v in wall.items()},
         "seconds_p90": {k: float(np.nanpercentile(v, 90)) for k, v in wall.items()},
         "cpu_seconds_per_module": {k: median(cpu_keys[k]) for k in TIMING_KEYS},
         "cpu_seconds_per_frame": median("cpu"),
-        "backbone_seconds": {k.removeprefix("backbone."): median(k) for k in sub},
+        "steps": {
+            k: {
+                "wall": float(np.mean([r.timings.get(k, 0.0) for r in used])),
+                "cpu": float(np.mean([r.timings.get(f"{k}_cpu", 0.0) for r in used])),
+            }
+            for k in steps
+        },
+        "cpu_mean_per_frame": float(np.mean([r.timings.get("cpu", np.nan) for r in used])),
+        "threads": thread_report(),
         "total_all_frames": median("total", timed),
         "cpu_all_frames": median("cpu", timed),
         "paper_seconds_per_frame": PAPER_SECONDS,
@@ -73,6 +87,13 @@ def evaluate_timing(run: QueryRun, *, progress: bool = True) -> dict[str, Any]:
         "cpu_count": os.cpu_count(),
         "load_average": list(os.getloadavg()),
     }
+
+
+def _plain(value: Any) -> str:
+    """A thread report's value as one table cell."""
+    if isinstance(value, dict):
+        return ", ".join(f"{k} {v}" for k, v in value.items())
+    return str(value)
 
 
 def timing_figure(metrics: dict[str, Any]) -> Figure:
@@ -97,6 +118,7 @@ def timing_figure(metrics: dict[str, Any]) -> Figure:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, queries=20)
     add_pipeline_arguments(parser)
+    add_perception_mode_argument(parser, default="paper")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -106,10 +128,10 @@ def run(args: argparse.Namespace) -> int:
     settings = {"scene": args.scene, **query_run.settings(), **run_settings(clock)}
     wall, p90, cpu = metrics["seconds_per_frame"], metrics["seconds_p90"], metrics["cpu_seconds_per_module"]
     rows = [(k, wall[k], p90[k], cpu[k], PAPER_SECONDS[k]) for k in TIMING_KEYS]
-    breakdown = metrics["backbone_seconds"]
-    steps = [k for k in breakdown if not k.endswith("_cpu")]
+    steps, threads = metrics["steps"], metrics["threads"]
     sections = [
-        f"Backbone `{args.backbone}`, k = {args.k}, retrieval {args.retrieval}, averaging {args.averaging}; "
+        f"Backbone `{args.backbone}`, k = {args.k}, retrieval {args.retrieval}, averaging {args.averaging}, "
+        f"perception mode {args.perception_mode}; "
         f"{metrics['n_frames']} timed frames ({metrics['n_lost']} lost) on {metrics['cpu_count']} CPUs "
         f"(load average {metrics['load_average'][0]:.1f}). Medians over the localized frames; over all "
         f"frames, lost ones included: {metrics['total_all_frames']:.3f} s wall, "
@@ -119,11 +141,10 @@ def run(args: argparse.Namespace) -> int:
         + markdown_table(
             ["module", "wall (median)", "wall (p90)", "CPU s (median)", "paper (RTX 5090, VGGT)"], rows
         ),
-        "## Backbone breakdown (median s)\n\n"
-        + markdown_table(
-            ["step", "wall", "CPU s"],
-            [(k, breakdown[k], breakdown.get(f"{k}_cpu", float("nan"))) for k in steps],
-        ),
+        "## Steps inside the modules (mean s per frame, all rounds of a frame)\n\n"
+        + markdown_table(["step", "wall", "CPU s"], [(k, v["wall"], v["cpu"]) for k, v in steps.items()])
+        + f"\n\nMean CPU s per frame: {metrics['cpu_mean_per_frame']:.3f}.",
+        "## Threads\n\n" + markdown_table(["pool", "threads"], [(k, _plain(v)) for k, v in threads.items()]),
     ]
     figures = {"timing.png": timing_figure(metrics)}
     write_report(args.out, "Per-module timing", metrics, sections, figures, settings=settings)

@@ -18,12 +18,18 @@ order of ``items``, whichever worker ran them:
 - ``workers=N``: a ``concurrent.futures.ProcessPoolExecutor`` of up to N processes (started on
   demand) with the ``spawn`` context (a GL context or a thread pool does not survive ``fork``);
   each process builds its state on its first task of a setup. Worker ``i`` runs on the ``i``-th
-  share of this process's cores (CPU affinity, Linux): the backbone's thread pool, OpenCV and
-  OpenMP size themselves by it, so N workers on N cores do not oversubscribe them;
+  share of this process's cores (CPU affinity, Linux) and sizes every native thread pool to it at
+  its start (:func:`~vgpnav_env.perception.backbones.threads.configure_threads`), so N workers on
+  N cores do not oversubscribe them;
 - ``ray=ADDRESS``: one Ray task per item (``ray.init(address)``; ``"local"`` starts a local
-  instance with ``workers`` CPUs). Ray reuses its worker processes between tasks, and the state is
-  cached in each of them the same way. Every node needs ``vgpnav-env`` installed and the same
-  builds (database directories) at the same paths.
+  instance with ``workers`` CPUs), each task on one CPU (its process's pools sized to one thread).
+  Ray reuses its worker processes between tasks, and the state is cached in each of them the same
+  way. Every node needs ``vgpnav-env`` installed and the same builds (database directories) at the
+  same paths.
+
+``cost`` (optional, one number per item, e.g. an episode's geodesic distance): items are started
+in decreasing cost, so that the last worker does not run a long task alone; results keep the
+order of ``items``.
 
 A running task may call :func:`note` (e.g. ``"episode 2: step 40"``): the note is shown beside
 its map's progress bar, from this process or from worker processes (through a queue; notes from
@@ -54,6 +60,8 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
+from vgpnav_env.perception.backbones.threads import available_cores, configure_threads
+
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
@@ -73,6 +81,8 @@ _STATE: tuple[str, Any] | None = None
 _NOTES: Callable[[tuple[int, str | None]], None] | None = None
 #: Seconds between looks at the notes while waiting for worker processes.
 NOTE_POLL_S = 0.5
+#: The process whose thread pools :func:`_run` sized (a Ray worker's).
+_THREADS_PID = -1
 
 
 def note(text: str) -> None:
@@ -84,8 +94,6 @@ def note(text: str) -> None:
 
 def default_workers() -> int:
     """The cores this process may run on (the default ``--workers``)."""
-    from vgpnav_env.perception.backbones.threads import available_cores
-
     return available_cores()
 
 
@@ -106,8 +114,13 @@ def _state(key: str, setup: Setup) -> Any:
     return _STATE[1]
 
 
-def _run(key: str, setup: Setup, task: Task, item: Any) -> tuple[Any, float]:
-    """Worker side of one task: (result, CPU seconds this process spent on it, setup included)."""
+def _run(key: str, setup: Setup, task: Task, item: Any, threads: int | None = None) -> tuple[Any, float]:
+    """Worker side of one task: (result, CPU seconds this process spent on it, setup included);
+    ``threads``: size this process's thread pools to that many threads first (once per process)."""
+    global _THREADS_PID
+    if threads is not None and _THREADS_PID != os.getpid():
+        configure_threads(threads=threads)
+        _THREADS_PID = os.getpid()
     cpu = time.process_time()
     try:
         result = task(_state(key, setup), item)
@@ -123,14 +136,13 @@ def _init_worker(notes: Any, counter: Any, workers: int, cores: tuple[int, ...] 
     each start thread pools over every core."""
     global _NOTES
     _NOTES = notes.put
-    if cores is None:
-        return
-    with counter.get_lock():
-        i = counter.value
-        counter.value += 1
-    n = min(workers, len(cores))
-    share = cores[i % n :: n]
-    os.sched_setaffinity(0, share)
+    if cores is not None:
+        with counter.get_lock():
+            i = counter.value
+            counter.value += 1
+        n = min(workers, len(cores))
+        os.sched_setaffinity(0, cores[i % n :: n])
+    configure_threads()
 
 
 def _drain(notes: Any) -> list[tuple[int, str | None]]:
@@ -210,25 +222,40 @@ class Workers:
         task: Task,
         items: Sequence[Any],
         desc: str | None = None,
+        cost: Sequence[float] | None = None,
         on_result: Done | None = None,
     ) -> list[Any]:
-        """``[task(state, item) for item in items]`` with one state per worker (module docstring).
-        ``on_result(i, result)`` is called in this process as each task finishes (in the order
-        they finish), e.g. to write a record before the others are done."""
+        """``[task(state, item) for item in items]`` with one state per worker, started in decreasing
+        ``cost`` when given (module docstring). ``on_result(i, result)`` is called in this process
+        as each task finishes (in the order they finish; ``i`` indexes ``items``), e.g. to write a
+        record before the others are done."""
         items = list(items)
         if not items:
             return []
+        if cost is not None and len(cost) != len(items):
+            raise ValueError(f"got {len(cost)} costs for {len(items)} items")
+        order = list(range(len(items))) if cost is None else sorted(range(len(items)), key=lambda i: -cost[i])
         key = _key(setup)
         bar = tqdm(total=len(items), desc=desc, disable=not self.progress, unit="task")
-        done = on_result or (lambda i, result: None)
+        ordered = [items[i] for i in order]
+
+        def done_ordered(j: int, result: Any) -> None:
+            if on_result is not None:
+                on_result(order[j], result)
+
         try:
             if self.ray_address is not None:
-                return self._map_ray(key, setup, task, items, bar, done)
-            if self.workers == 1:
-                return self._map_here(key, setup, task, items, bar, done)
-            return self._map_processes(key, setup, task, items, bar, done)
+                out = self._map_ray(key, setup, task, ordered, bar, done_ordered)
+            elif self.workers == 1:
+                out = self._map_here(key, setup, task, ordered, bar, done_ordered)
+            else:
+                out = self._map_processes(key, setup, task, ordered, bar, done_ordered)
         finally:
             bar.close()
+        results: list[Any] = [None] * len(items)
+        for i, result in zip(order, out, strict=True):
+            results[i] = result
+        return results
 
     def _map_here(
         self, key: str, setup: Setup, task: Task, items: list[Any], bar: tqdm, done: Done
@@ -294,7 +321,7 @@ class Workers:
         ray = self._connect_ray()
         remote = ray.remote(num_cpus=1)(_run)
         setup_ref = ray.put(setup)
-        refs = [remote.remote(key, setup_ref, task, x) for x in items]
+        refs = [remote.remote(key, setup_ref, task, x, 1) for x in items]
         index = {ref: i for i, ref in enumerate(refs)}
         results: list[Any] = [None] * len(items)
         pending = list(refs)

@@ -156,9 +156,9 @@ def test_a_second_call_on_the_same_query_reuses_its_features_and_pairs(scene, mo
     calls = []
     original = ClassicalBackbone.relative_pose
 
-    def counting(self, fq, fr, camera, expected_T_iq=None):
+    def counting(self, fq, fr, camera, expected_T_iq=None, matches=None):
         calls.append(fr)
-        return original(self, fq, fr, camera, expected_T_iq)
+        return original(self, fq, fr, camera, expected_T_iq, matches)
 
     monkeypatch.setattr(ClassicalBackbone, "relative_pose", counting)
     first = backbone(scene["query"], scene["refs"][:3], CAMERA, reference_keys=[0, 1, 2])
@@ -314,3 +314,27 @@ def test_expected_poses_leave_passing_pairs_and_are_checked(scene, result):
         backbone(scene["query"], scene["refs"], CAMERA, expected_T_qi=expected[:2])
     with pytest.raises(ValueError, match="guided_min_inliers"):
         ClassicalConfig(guided_min_inliers=3)
+
+
+def test_a_pairs_dominant_plane_is_fitted_once(monkeypatch):
+    """The backbone's planarity test and the verifier's off-plane matches share one homography fit
+    per match set (float32 or float64 pixels alike), and a caller's edits do not reach the others."""
+    import cv2
+
+    from vgpnav_env.perception.backbones import classical
+
+    rng = np.random.default_rng(5)
+    pq = (rng.random((120, 2)) * 300).astype(np.float32)
+    H = np.array([[1.0, 0.02, 4.0], [0.01, 1.0, -3.0], [0.0, 0.0, 1.0]])
+    pr = cv2.perspectiveTransform(pq[None].astype(np.float64), H)[0].astype(np.float32)
+    pr[:40] = rng.random((40, 2)) * 300  # a third off the plane
+    fits = []
+    original = cv2.findHomography
+    monkeypatch.setattr(cv2, "findHomography", lambda *a, **k: fits.append(1) or original(*a, **k))
+    first = classical.dominant_plane(pq.astype(np.float64), pr.astype(np.float64), 2.0)
+    assert 70 <= first[40:].sum() <= 80 and first[:40].sum() <= 2 and len(fits) == 1
+    first[:] = False
+    again = classical.dominant_plane(pq, pr, 2.0)
+    assert len(fits) == 1 and again[40:].sum() >= 70  # the same mask, untouched by the edit above
+    classical.dominant_plane(pq, pr, 1.0)  # another threshold is another fit
+    assert len(fits) == 2

@@ -247,9 +247,14 @@ def test_timing_report(build: Path, tmp_path: Path) -> None:
     for stage in stages:
         assert 0 <= wall[stage] <= p90[stage] and wall[stage] <= wall["total"], stage
     assert r["cpu_seconds_per_frame"] == r["cpu_seconds_per_module"]["total"] > 0
-    # The classical backbone reports its own steps, each with its CPU seconds.
-    steps = [k for k in r["backbone_seconds"] if not k.endswith("_cpu")]
-    assert steps and all(f"{k}_cpu" in r["backbone_seconds"] for k in steps)
+    # The classical backbone and the occupancy report their own steps, each with its CPU seconds.
+    steps = r["steps"]
+    backbone = {"features", "matching", "two_view", "scale_linking", "plane_sweep", "completion"}
+    assert {f"backbone.{k}" for k in backbone} <= set(steps)
+    assert {"occupancy.posed_depth", "occupancy.fusion"} <= set(steps)
+    assert all(v["wall"] >= 0 and v["cpu"] >= 0 for v in steps.values())
+    assert sum(v["cpu"] for k, v in steps.items() if k.startswith("backbone.")) > 0
+    assert r["threads"]["share"] >= 1 and r["threads"]["opencv"] >= 1
     assert r["paper_seconds_per_frame"]["total"] == 0.492 and r["cpu_count"] >= 1
     assert len(r["load_average"]) == 3
     md = (out / "report.md").read_text()
@@ -257,7 +262,8 @@ def test_timing_report(build: Path, tmp_path: Path) -> None:
     for stage in stages:  # one row per module, ours beside the paper's (- where it lists none)
         assert f"| {stage} |" in table, stage
     assert "| retrieval |" in table and "0.027 |" in table and "| verification |" in table
-    assert "## Backbone breakdown" in md and all(f"| {k} |" in md for k in steps)
+    assert "## Steps inside the modules" in md and all(f"| {k} |" in md for k in steps)
+    assert "## Threads" in md
     assert (out / "timing.png").stat().st_size > 5000
 
 

@@ -13,7 +13,15 @@ from dataclasses import asdict
 from pathlib import Path
 
 import pytest
-from worker_tasks import CountingSetup, affinity_task, failing_task, noting_task, tagged_task
+from worker_tasks import (
+    CountingSetup,
+    affinity_task,
+    failing_task,
+    noting_task,
+    ordered_task,
+    tagged_task,
+    threads_task,
+)
 
 from vgpnav_env.eval.perception_runs import QueryRun, perceive_queries
 from vgpnav_env.eval.workers import Workers, note
@@ -44,6 +52,34 @@ def test_each_worker_runs_on_its_share_of_the_cores() -> None:
     if len(cores) >= 2 and len(shares) == 2:  # disjoint halves: no core runs two workers' thread pools
         assert not shares[0] & shares[1] and shares[0] | shares[1] == set(cores)
     assert sorted(os.sched_getaffinity(0)) == cores  # this process keeps all of them
+
+
+def test_each_worker_sizes_its_thread_pools_to_its_share() -> None:
+    """N workers on N cores: one thread per pool, idle OpenMP threads sleep."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    with Workers(2, progress=False) as workers:
+        reports = workers.map(CountingSetup("a"), threads_task, list(range(6)))
+    for r in reports:
+        assert r["share"] == r["backbone_pool"] == max(1, cores // 2) and r["opencv"] == 1
+        assert r["environment"]["OMP_WAIT_POLICY"] == "PASSIVE"
+        assert r["environment"]["OMP_NUM_THREADS"] == str(r["share"])
+        if isinstance(r["native"], dict):  # threadpoolctl installed: every loaded BLAS / OpenMP pool
+            assert set(r["native"].values()) == {r["share"]}, r["native"]
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_costly_items_start_first_and_results_keep_their_order(n: int) -> None:
+    cost = [1.0, 5.0, 3.0, 4.0, 2.0, 0.5]
+    with Workers(n, progress=False) as workers:
+        out = workers.map(CountingSetup("a"), ordered_task, list(range(6)), cost=cost)
+    assert [item for item, _, _ in out] == list(range(6))
+    for pid in {p for _, p, _ in out}:  # each worker started its items in decreasing cost
+        mine = sorted((position, cost[item]) for item, p, position in out if p == pid)
+        assert [c for _, c in mine] == sorted((c for _, c in mine), reverse=True)
+    if n == 1:
+        assert [position for _, _, position in out] == [4, 0, 2, 1, 3, 5]
+    with pytest.raises(ValueError, match="costs"):
+        Workers(1, progress=False).map(CountingSetup("a"), ordered_task, [1, 2], cost=[1.0])
 
 
 def test_a_task_error_reaches_the_caller() -> None:
@@ -124,3 +160,17 @@ def test_ray_local_instance_with_two_workers_equals_sequential(build: Path) -> N
         assert workers.where == "Ray (local)"
     assert _comparable(distributed) == _comparable(sequential)
     assert workers.cpu_seconds > 0
+
+
+@needs_ray
+def test_ray_tasks_run_on_one_thread_each(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two local Ray workers, light tasks (a few seconds: Ray's start): each task's process sizes
+    its pools to the one CPU the task holds, and costly items start first."""
+    tests = str(Path(__file__).parent)  # Ray's worker processes import the tasks from here
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [tests, os.environ.get("PYTHONPATH")])))
+    with Workers(2, ray="local", progress=False) as workers:
+        reports = workers.map(CountingSetup("a"), threads_task, list(range(4)), cost=[1, 2, 3, 4])
+        out = workers.map(CountingSetup("a"), tagged_task, list(range(5)))
+    assert all(r["share"] == r["backbone_pool"] == 1 and r["opencv"] == 1 for r in reports)
+    assert all(r["environment"]["OMP_WAIT_POLICY"] == "PASSIVE" for r in reports)
+    assert [r[0] for r in out] == [i * i for i in range(5)] and all(r[1] != os.getpid() for r in out)

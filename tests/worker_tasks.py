@@ -36,3 +36,17 @@ def noting_task(state: dict, item: int) -> int:
     note(f"item {item} running")
     time.sleep(0.3)  # a task that takes a while: the note is sent long before its result
     return item * item
+
+
+def threads_task(state: dict, item: int) -> dict:
+    """The worker process's thread pools (:func:`thread_report`) and its pid."""
+    from vgpnav_env.perception.backbones.threads import thread_report
+
+    return {"pid": os.getpid(), **thread_report()}
+
+
+def ordered_task(state: dict, item: int) -> tuple[int, int, int]:
+    """(item, pid, how many tasks this worker ran before it): the order tasks started in."""
+    started = state.setdefault("started", [])
+    started.append(item)
+    return item, os.getpid(), len(started) - 1

@@ -133,6 +133,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser(argv).parse_args(argv)
     _configure_logging(args.verbose)
+    from vgpnav_env.perception.backbones.threads import configure_threads
+
+    configure_threads()  # this process's pools; worker processes size theirs at their start
     module = importlib.import_module(COMMANDS[args._command][0])
     try:
         return int(module.run(args))

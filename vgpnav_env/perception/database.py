@@ -32,7 +32,7 @@ import logging
 import os
 import time
 from collections.abc import Hashable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -52,6 +52,7 @@ from vgpnav_env.perception.backbones.classical import (
     rootsift,
     sift_settings,
 )
+from vgpnav_env.perception.backbones.stereo import SweepConfig
 from vgpnav_env.perception.backbones.threads import thread_map
 from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
 from vgpnav_env.perception.points import depth_points
@@ -86,7 +87,8 @@ class DatabaseConfig:
     overturn the prior (the layout may have changed since the database was recorded).
     ``store_features``: extract the classical features of every database image once and cache
     them on disk (else they are extracted on first use); ``feature_cache_size`` decoded
-    (RootSIFT, float32) images are kept in memory.
+    (RootSIFT, float32) images are kept in memory. ``prior_sweep``: the plane sweep the prior's
+    frames are reconstructed with (the map's resolution, not the backbone's coarser default).
     """
 
     vlad: VladConfig = field(default_factory=VladConfig)
@@ -105,6 +107,7 @@ class DatabaseConfig:
     prior_clamp: float = 2.0
     feature_cache_size: int = 64
     store_features: bool = True
+    prior_sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def __post_init__(self) -> None:
         if self.prior not in ("database", "none"):
@@ -128,12 +131,21 @@ class DatabaseConfig:
 
 def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict[str, Any]:
     keys = [k for k in asdict(config) if k.startswith("prior") or k in ("map_resolution", "map_margin")]
+    keys.remove("prior_sweep")  # part of the backbone the prior runs (prior_backbone_config)
     return {
         "version": PRIOR_VERSION,
         "database": {k: asdict(config)[k] for k in keys} | {"obstacle_max": config.obstacle_max},
         # The thread count does not change the result.
-        "backbone": {k: v for k, v in asdict(backbone_config).items() if k != "threads"},
+        "backbone": {
+            k: v for k, v in asdict(prior_backbone_config(config, backbone_config)).items() if k != "threads"
+        },
     }
+
+
+def prior_backbone_config(config: DatabaseConfig, backbone_config: ClassicalConfig) -> ClassicalConfig:
+    """The classical backbone settings the prior map is reconstructed with: ``backbone_config`` with
+    the map's sweep (``config.prior_sweep``: the prior's points come from the backbone's depth)."""
+    return replace(backbone_config, sweep=config.prior_sweep)
 
 
 def _jsonable_key(key: dict[str, Any]) -> Any:
@@ -440,7 +452,9 @@ class Database:
             len(range(0, len(self), self.config.prior_stride)),
         )
         self.prior, self.z_ground, stats = build_prior(
-            self, ClassicalBackbone(backbone_config, self.feature_cache), progress=progress
+            self,
+            ClassicalBackbone(prior_backbone_config(self.config, backbone_config), self.feature_cache),
+            progress=progress,
         )
         atomic_write(
             arrays_file,

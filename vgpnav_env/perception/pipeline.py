@@ -269,7 +269,8 @@ class _MetricPose:
 
 class _Clock:
     """Wall seconds per stage (:data:`TIMING_KEYS`), the process CPU seconds per stage (``<stage>_cpu``,
-    all threads) and the CPU seconds of one ``perceive`` call (``cpu``)."""
+    all threads) and the CPU seconds of one ``perceive`` call (``cpu``); steps inside a stage are
+    ``<stage>.<step>`` (and ``<stage>.<step>_cpu``), summed over the call (e.g. both backbone rounds)."""
 
     def __init__(self) -> None:
         stages = TIMING_KEYS[:-1]
@@ -282,8 +283,13 @@ class _Clock:
         try:
             yield
         finally:
-            self.timings[name] += time.perf_counter() - t0
-            self.timings[f"{name}_cpu"] += time.process_time() - cpu0
+            self.add({name: time.perf_counter() - t0, f"{name}_cpu": time.process_time() - cpu0})
+
+    def add(self, timings: dict[str, float], stage: str | None = None) -> None:
+        """Add ``timings`` (seconds by key) to this call's, as steps of ``stage`` when given."""
+        for key, seconds in timings.items():
+            key = f"{stage}.{key}" if stage else key
+            self.timings[key] = self.timings.get(key, 0.0) + seconds
 
     def stop(self) -> dict[str, float]:
         total, cpu = time.perf_counter() - self._start, time.process_time() - self._cpu
@@ -408,16 +414,16 @@ class Perceiver:
                 break
         if result.localized:
             with clock.stage("occupancy"):
-                posed = self._posed_points(rgb, result, points_w)
+                posed = self._posed_points(rgb, result, points_w, clock)
             if posed is not None:
                 result, points_w = replace(result, points_w=posed.astype(np.float32)), posed
         if result.localized and fuse:
-            with clock.stage("occupancy"):
+            with clock.stage("occupancy"), clock.stage("occupancy.fusion"):
                 result = replace(result, classes=self._fuse(result, points_w))
         return replace(result, timings=clock.stop())
 
     def _posed_points(
-        self, rgb: NDArray[np.uint8], result: PerceptionResult, points_w: NDArray[np.float64]
+        self, rgb: NDArray[np.uint8], result: PerceptionResult, points_w: NDArray[np.float64], clock: _Clock
     ) -> NDArray[np.float64] | None:
         """The localized frame's metric points from the depth swept again at its pose
         (:mod:`~vgpnav_env.perception.posed_depth`, ``config.depth``) against the classical
@@ -432,10 +438,21 @@ class Perceiver:
         if len(refs) == 0:
             return None
         depths = ((points_w - T_wc[:3, 3]) @ T_wc[:3, :3])[:, 2]
-        depth, confidence = posed_depth(
-            rgb, [db.images[i] for i in refs], db.poses[refs], T_wc, self.camera, depths,
-            net.config.sweep, threads=net.config.threads,
-        )  # fmt: skip
+        sweep: dict[str, float] = {}
+        with clock.stage("occupancy.posed_depth"):
+            depth, confidence = posed_depth(
+                rgb, [db.images[i] for i in refs], db.poses[refs], T_wc, self.camera, depths,
+                cfg.sweep, threads=net.config.threads, timings=sweep,
+            )  # fmt: skip
+        # The completion apart from the sweep proper.
+        clock.add(
+            {
+                "posed_depth": -sweep.get("completion", 0.0),
+                "posed_depth_cpu": -sweep.get("completion_cpu", 0.0),
+            },
+            "occupancy",
+        )
+        clock.add(sweep, "occupancy")
         points_q, _ = depth_points(
             self.camera,
             depth,
@@ -702,6 +719,7 @@ class Perceiver:
                 reference_keys=[int(i) for i in refs],
                 expected_T_qi=None if guide is None else invert_pose(guide) @ db.poses[refs],
             )
+        clock.add(out.timings, "backbone")
         with clock.stage("motion_averaging"):
             cfg = self.config
             motion = average_motion(

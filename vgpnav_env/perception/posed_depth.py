@@ -18,7 +18,7 @@ depth is swept again:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +31,9 @@ from vgpnav_env.perception.retrieval import nearby_cameras
 @dataclass(frozen=True)
 class PosedDepthConfig:
     """The re-sweep after localization (module docstring); ``enabled`` False keeps the backbone's
-    depth. ``sample_stride``: every that many of the first points score the overlap."""
+    depth. ``sample_stride``: every that many of the first points score the overlap. ``sweep``: the
+    plane sweep's settings (the map's depth; the backbone's own sweep, which serves the ground
+    peak, has its own in :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig`)."""
 
     enabled: bool = True
     references: int = 5
@@ -40,6 +42,7 @@ class PosedDepthConfig:
     min_baseline: float = 0.15
     distance_weight: float = 0.1
     sample_stride: int = 7
+    sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def __post_init__(self) -> None:
         if self.references < 1 or self.sample_stride < 1:
@@ -87,9 +90,12 @@ def posed_depth(
     depths_m: NDArray[np.float64],
     sweep: SweepConfig | None = None,
     threads: int = 1,
+    timings: dict[str, float] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Metric query z-depth (H, W; 0 where unknown) and confidence of the plane sweep of ``query``
     at ``T_wc`` against ``references`` at their poses ``T_wi`` (k, 4, 4), over the range of the
-    depths ``depths_m`` (metres, e.g. the query's first points)."""
+    depths ``depths_m`` (metres, e.g. the query's first points); ``timings`` as in
+    :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`."""
     T_iq = invert_pose(np.asarray(T_wi, float)) @ np.asarray(T_wc, float)
-    return plane_sweep(query, references, T_iq, camera, np.asarray(depths_m, float), sweep, threads=threads)
+    depths = np.asarray(depths_m, float)
+    return plane_sweep(query, references, T_iq, camera, depths, sweep, threads=threads, timings=timings)

@@ -40,7 +40,7 @@ from vgpnav_env.perception.backbones.classical import (
     rootsift,
     sift_settings,
 )
-from vgpnav_env.perception.backbones.threads import thread_map
+from vgpnav_env.perception.backbones.threads import resolve_threads, thread_map
 
 #: Bumped whenever the descriptor computation changes, so stale caches are not loaded.
 FORMAT_VERSION = 3
@@ -197,9 +197,10 @@ def _vlad(desc: NDArray[np.float32], centres: NDArray[np.float32], power_norm: b
 
 
 def _vocabulary(
-    descriptors: Sequence[NDArray[np.float32]], config: VladConfig, seed: int
+    descriptors: Sequence[NDArray[np.float32]], config: VladConfig, seed: int, threads: int = 1
 ) -> NDArray[np.float32]:
-    """``config.n_words`` k-means centres (seeded) of a sample of the local descriptors."""
+    """``config.n_words`` k-means centres (seeded) of a sample of the local descriptors; OpenCV's
+    k-means runs on ``threads`` threads (<= 0: the process's share; the centres do not depend on it)."""
     stacked = np.concatenate(descriptors, axis=0)
     if len(stacked) < config.n_words:
         raise ValueError(
@@ -211,9 +212,19 @@ def _vocabulary(
         stacked = stacked[rng.choice(len(stacked), config.max_training_descriptors, replace=False)]
     cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, config.kmeans_iterations, 1e-4)
-    _, _, centres = cv2.kmeans(
-        np.ascontiguousarray(stacked, np.float32), config.n_words, None, criteria, 1, cv2.KMEANS_PP_CENTERS
-    )
+    before = cv2.getNumThreads()  # one big call: OpenCV's own pool (configure_threads gives it 1)
+    cv2.setNumThreads(resolve_threads(threads))
+    try:
+        _, _, centres = cv2.kmeans(
+            np.ascontiguousarray(stacked, np.float32),
+            config.n_words,
+            None,
+            criteria,
+            1,
+            cv2.KMEANS_PP_CENTERS,
+        )
+    finally:
+        cv2.setNumThreads(before)
     return centres.astype(np.float32)
 
 
@@ -290,7 +301,7 @@ class VladIndex:
                 bar.update(n)
             bar.set_description(f"VLAD index: k-means ({config.n_words} words)")
             bar.refresh()
-            index.centres = _vocabulary(descriptors, config, seed)
+            index.centres = _vocabulary(descriptors, config, seed, threads)
             bar.set_description(f"VLAD index: describing {n} images")
             raw = np.empty((n, config.n_words * 128), np.float32)
             for i, local in enumerate(descriptors):

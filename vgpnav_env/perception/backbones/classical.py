@@ -31,7 +31,11 @@ overrule the images), and the pipeline verifies the pose the pairs give.
 
 A dense query depth comes from :func:`~vgpnav_env.perception.backbones.stereo.plane_sweep`
 against the widest-baseline of the most confident linked references (see that module for the
-method and its confidence).
+method and its confidence), by default at a quarter of the image size (:data:`BACKBONE_SWEEP`):
+the pipeline reads it for the ground peak (the metric scale) and the frame's first points, while
+the map's depth is swept again at the localized pose at the map's resolution
+(:mod:`~vgpnav_env.perception.posed_depth`). The coarse sweep costs a quarter of the half-size
+one; its effect on localization is in ``benchmarks/speed.md``.
 
 Speed: the pairs and the sweep's plane chunks run on ``ClassicalConfig.threads`` threads (OpenCV,
 poselib and numpy release the GIL; results do not depend on the count); a query image's RootSIFT
@@ -67,6 +71,11 @@ from vgpnav_env.perception.backbones.threads import thread_map
 log = logging.getLogger(__name__)
 
 
+#: The backbone's sweep (module docstring): 80x60 at 320x240, NCC windows of 3 and 5 pixels (about
+#: the image area of the map sweep's 5 and 11 pixels at half size).
+BACKBONE_SWEEP = SweepConfig(scale=0.25, ncc_window=3, check_window=5)
+
+
 @dataclass(frozen=True)
 class ClassicalConfig:
     """Knobs of the classical backbone (pixels are full-resolution unless stated).
@@ -80,7 +89,8 @@ class ClassicalConfig:
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
     ``sweep_references`` by baseline among the ``sweep_candidates`` most confident) and the
-    :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep``. ``threads``: the
+    :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep`` (default
+    :data:`BACKBONE_SWEEP`; module docstring). ``threads``: the
     independent pairs and plane-sweep chunks run on that many threads (0 = every available core,
     1 = serial; results are the same). Prior-guided pairs (module docstring): ``guided_min_inliers``
     (None: expected poses are ignored), ``guided_min_share`` (the guided pose needs at least this
@@ -113,7 +123,7 @@ class ClassicalConfig:
     unlinked_confidence_factor: float = 0.5
     sweep_candidates: int = 5
     sweep_references: int = 5
-    sweep: SweepConfig = field(default_factory=SweepConfig)
+    sweep: SweepConfig = field(default_factory=lambda: BACKBONE_SWEEP)
     threads: int = 0
     guided_min_inliers: int | None = 15
     guided_min_share: float = 0.5
@@ -333,12 +343,37 @@ def sampson_distance(
         return np.abs(num) / np.sqrt(den)
 
 
+_planes_lock = threading.Lock()
+_planes: OrderedDict[bytes, NDArray[np.bool_]] = OrderedDict()
+_PLANES_ITEMS = 256
+
+
 def dominant_plane(pq: NDArray[np.floating], pr: NDArray[np.floating], threshold: float) -> NDArray[np.bool_]:
     """(m,) which of the matched pixels ``pq`` -> ``pr`` (m, 2) one homography explains (OpenCV
     RANSAC, ``threshold`` pixels): a dominant plane, which leaves the 5-point pose ambiguous and
-    fits a wall's texture at more than one place."""
-    _, mask = cv2.findHomography(pq, pr, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
-    return mask.ravel().astype(bool) if mask is not None else np.zeros(len(pq), bool)
+    fits a wall's texture at more than one place.
+
+    OpenCV's RANSAC is deterministic and works on float32 pixels, so the masks of the last few
+    hundred calls are kept by content: the backbone's planarity test and every verification of the
+    same pair's matches fit the homography once (the same mask)."""
+    pq32 = np.ascontiguousarray(pq, np.float32).reshape(-1, 2)
+    pr32 = np.ascontiguousarray(pr, np.float32).reshape(-1, 2)
+    digest = hashlib.blake2b(np.float64(threshold).tobytes(), digest_size=16)
+    digest.update(pq32.data)
+    digest.update(pr32.data)
+    key = digest.digest()
+    with _planes_lock:
+        mask = _planes.get(key)
+        if mask is not None:
+            _planes.move_to_end(key)
+            return mask.copy()
+    _, found = cv2.findHomography(pq32, pr32, cv2.RANSAC, threshold, maxIters=500, confidence=0.99)
+    mask = found.ravel().astype(bool) if found is not None else np.zeros(len(pq32), bool)
+    with _planes_lock:
+        _planes[key] = mask
+        while len(_planes) > _PLANES_ITEMS:
+            _planes.popitem(last=False)
+    return mask.copy()
 
 
 @dataclass(frozen=True)
@@ -471,10 +506,12 @@ class _StageClock:
         self.timings = timings
         self.wall, self.cpu = time.perf_counter(), time.process_time()
 
-    def lap(self, stage: str) -> None:
+    def lap(self, stage: str, less: str | None = None) -> None:
+        """Close ``stage`` (less the seconds already written to the sub-stage ``less``)."""
         wall, cpu = time.perf_counter(), time.process_time()
-        self.timings[stage] = wall - self.wall
-        self.timings[f"{stage}_cpu"] = cpu - self.cpu
+        inner, inner_cpu = self.timings.get(less, 0.0), self.timings.get(f"{less}_cpu", 0.0)
+        self.timings[stage] = wall - self.wall - inner
+        self.timings[f"{stage}_cpu"] = cpu - self.cpu - inner_cpu
         self.wall, self.cpu = wall, cpu
 
 
@@ -523,19 +560,26 @@ class ClassicalBackbone(Backbone):
             self._query_memo = _QueryMemo(key, rootsift(query, self.config))
         return self._query_memo
 
+    def match(self, fq: Features, fr: Features) -> NDArray[np.int64]:
+        """Putative matches (m, 2) query / reference feature indices (:func:`match_descriptors`)."""
+        return match_descriptors(fq.descriptors, fr.descriptors, self.config.ratio, self.config.mutual)
+
     def relative_pose(
         self,
         fq: Features,
         fr: Features,
         camera: PinholeCamera,
         expected_T_iq: NDArray[np.float64] | None = None,
+        matches: NDArray[np.int64] | None = None,
     ) -> tuple[PairGeometry | None, int, NDArray[np.float32]]:
         """Two-view geometry of one pair (None when it fails), its verified match count and its
         putative matches (m, 4) float32 pixels ``(u_q, v_q, u_r, v_r)``. ``expected_T_iq`` (4, 4):
         the query's expected pose in the reference camera (metric), for a prior-guided pair
-        (module docstring; None: RANSAC alone)."""
+        (module docstring; None: RANSAC alone). ``matches``: the pair's :meth:`match` when already
+        computed."""
         cfg = self.config
-        matches = match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
+        if matches is None:
+            matches = self.match(fq, fr)
         pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
         pixels = np.hstack([pq, pr]).astype(np.float32)
         guided = expected_T_iq is not None and cfg.guided_min_inliers is not None
@@ -714,12 +758,15 @@ class ClassicalBackbone(Backbone):
         if expected is not None:  # a pair's result depends on its expected pose too
             keys = [None if key is None else (key, expected[i].tobytes()) for i, key in enumerate(keys)]
         todo = [i for i, key in enumerate(keys) if key is None or key not in memo.pairs]
+        threads = self.config.threads
+        matched = thread_map(lambda i: self.match(memo.features, frefs[i]), todo, threads)
+        clock.lap("matching")
         computed = thread_map(
-            lambda i: self.relative_pose(
-                memo.features, frefs[i], camera, None if expected is None else expected[i]
+            lambda job: self.relative_pose(
+                memo.features, frefs[job[0]], camera, None if expected is None else expected[job[0]], job[1]
             ),
-            todo,
-            self.config.threads,
+            list(zip(todo, matched, strict=True)),
+            threads,
         )
         fresh = dict(zip(todo, computed, strict=True))
         for i in todo:
@@ -761,8 +808,9 @@ class ClassicalBackbone(Backbone):
                 sparse,
                 self.config.sweep,
                 threads=self.config.threads,
+                timings=timings,
             )
-        clock.lap("plane_sweep")
+        clock.lap("plane_sweep", less="completion")
         if not confidence.any():
             log.debug("classical backbone: no reference pair passed (matches %s)", n_matches.tolist())
         return BackboneOutput(

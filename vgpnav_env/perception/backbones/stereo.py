@@ -21,6 +21,7 @@ unconfident pixels of well-fitted planar segments.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -143,6 +144,7 @@ def plane_sweep(
     sparse_depths: NDArray[np.float64],
     config: SweepConfig | None = None,
     threads: int = 1,
+    timings: dict[str, float] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Query depth (H, W) and confidence from an NCC sweep of fronto-parallel inverse-depth planes.
 
@@ -150,6 +152,8 @@ def plane_sweep(
     reference is warped onto the query per plane, scored by windowed NCC (unseen where the
     reference does not see the pixel) and averaged over the best references that do. The planes
     are scored in chunks on ``threads`` threads (<= 0: all cores; the result does not depend on it).
+    ``timings``: the piecewise-planar completion's wall and process CPU seconds are added to its
+    ``completion`` and ``completion_cpu`` (the rest of the call is the sweep proper).
     """
     cfg = config or SweepConfig()
     w = max(8, round(camera.width * cfg.scale))
@@ -192,9 +196,13 @@ def plane_sweep(
         step = abs(inv_depths[1] - inv_depths[0])
         conf_small[speckles(inv_depth, conf_small >= cfg.speckle_confidence, step, cfg)] = 0.0
     if cfg.planar is not None:
+        t0, c0 = time.perf_counter(), time.process_time()
         colour = cv2.resize(np.ascontiguousarray(query), (w, h), interpolation=cv2.INTER_AREA)
         inv_range = (float(inv_depths.min()), float(inv_depths.max()))
         inv_depth, conf_small = planar_fill(colour, inv_depth, conf_small, visible, inv_range, cfg.planar)
+        if timings is not None:
+            timings["completion"] = timings.get("completion", 0.0) + time.perf_counter() - t0
+            timings["completion_cpu"] = timings.get("completion_cpu", 0.0) + time.process_time() - c0
     depth_small = np.where(visible, 1.0 / inv_depth, 0.0).astype(np.float32)
     depth = cv2.resize(depth_small, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
     conf = cv2.resize(conf_small, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)

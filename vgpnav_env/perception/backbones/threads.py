@@ -1,19 +1,33 @@
-"""A per-process thread pool for the classical backbone's independent work items.
+"""Threads of a process: its CPU share, every native pool sized to it, and the backbone's own pool.
 
-OpenCV, poselib and numpy's array kernels release the GIL, so the per-reference two-view pairs and
-the plane-sweep chunks run on several cores from plain threads (shared read-only inputs, nothing
-pickled). The pool is created lazily in the process that uses it (a forked child makes its own)
-and is shared by every backbone of the process. A call made from inside a pool thread runs its
-items serially (no nested waiting on the same pool).
+:func:`configure_threads` is the one place that sizes the native thread pools of a process to its
+CPU share (the cores of its CPU affinity divided by the worker processes that share them; a worker
+of :mod:`vgpnav_env.eval.workers` already runs on its own share): OpenMP, OpenBLAS, MKL and numexpr
+through their environment variables (read when a library loads: effective for libraries not loaded
+yet and for child processes), BLAS libraries already loaded through ``threadpoolctl`` (when
+installed), OpenCV, torch's intra-op pool (inter-op 1) when torch is loaded, and
+``OMP_WAIT_POLICY=PASSIVE``: an idle OpenMP thread sleeps instead of spinning on a core another
+worker needs (with spinning, a torch pair took 1-7 s instead of 40-60 ms on 2 shared cores).
+OpenCV gets one thread: the backbone parallelizes over pairs and plane chunks itself (below), and
+OpenCV's own pool spin-waits between the small per-image calls. The CLI calls it once, each worker
+process at its start. :func:`thread_report` says what a process uses.
+
+The backbone's pool: OpenCV, poselib and numpy's array kernels release the GIL, so the
+per-reference two-view pairs and the plane-sweep chunks run on several cores from plain threads
+(shared read-only inputs, nothing pickled). The pool is created lazily in the process that uses it
+(a forked child makes its own) and is shared by every backbone of the process; its size follows the
+process's share (``threads`` <= 0) unless a config gives one. A call made from inside a pool thread
+runs its items serially (no nested waiting on the same pool).
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -22,6 +36,16 @@ _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
 _pool_key: tuple[int, int] = (-1, 0)  # (pid, size)
 _inside = threading.local()
+#: This process's share of cores set by :func:`configure_threads` (pid, threads); else its affinity.
+_share: tuple[int, int] = (-1, 0)
+#: Environment variables native libraries read their thread count from when they load.
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+)
 
 
 def available_cores() -> int:
@@ -32,9 +56,74 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def cpu_share() -> int:
+    """Threads this process's pools may use: set by :func:`configure_threads`, else its cores."""
+    return _share[1] if _share[0] == os.getpid() else available_cores()
+
+
 def resolve_threads(threads: int) -> int:
-    """``threads`` if positive, else the available cores."""
-    return threads if threads > 0 else available_cores()
+    """``threads`` if positive, else this process's :func:`cpu_share`."""
+    return threads if threads > 0 else cpu_share()
+
+
+def configure_threads(workers: int = 1, threads: int | None = None) -> int:
+    """Size every native thread pool of this process to its CPU share (module docstring): the cores
+    of its affinity divided by ``workers`` processes sharing them (at least 1), or ``threads`` when
+    given (e.g. a Ray task's CPUs). Returns the share."""
+    global _share
+    if workers < 1 or (threads is not None and threads < 1):
+        raise ValueError(f"workers and threads must be >= 1, got {workers}, {threads}")
+    share = threads if threads is not None else max(1, available_cores() // workers)
+    _share = (os.getpid(), share)
+    for name in THREAD_VARIABLES:
+        os.environ[name] = str(share)
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(share)
+    except ImportError:  # pragma: no cover - optional: the variables above size BLAS loaded later
+        pass
+    import cv2
+
+    cv2.setNumThreads(1)
+    torch = sys.modules.get("torch")  # never imported here: loading torch costs a second
+    if torch is not None:
+        torch.set_num_threads(share)
+        try:
+            torch.set_num_interop_threads(1)
+        except RuntimeError:  # already set, or torch's inter-op pool already ran
+            pass
+    return share
+
+
+def thread_report() -> dict[str, Any]:
+    """The thread counts this process uses: its cores and share, the backbone pool's size, OpenCV,
+    torch (when loaded), each loaded BLAS / OpenMP library (``threadpoolctl``, when installed) and
+    the thread environment variables."""
+    import cv2
+
+    report: dict[str, Any] = {
+        "cores": available_cores(),
+        "share": cpu_share(),
+        "backbone_pool": resolve_threads(0),
+        "opencv": cv2.getNumThreads(),
+    }
+    torch = sys.modules.get("torch")
+    report["torch"] = (
+        f"{torch.get_num_threads()} intra-op, {torch.get_num_interop_threads()} inter-op"
+        if torch is not None
+        else "not loaded"
+    )
+    try:
+        from threadpoolctl import threadpool_info
+
+        pools = threadpool_info()
+        report["native"] = {f"{i['internal_api']} ({i['prefix']})": i["num_threads"] for i in pools}
+    except ImportError:  # pragma: no cover - optional
+        report["native"] = "threadpoolctl not installed"
+    report["environment"] = {k: os.environ.get(k, "") for k in (*THREAD_VARIABLES, "OMP_WAIT_POLICY")}
+    return report
 
 
 def _get_pool(size: int) -> ThreadPoolExecutor:
@@ -53,7 +142,7 @@ def _mark_inside() -> None:
 
 
 def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int) -> list[R]:
-    """``[fn(x) for x in items]`` in order, on up to ``threads`` threads (<= 0: all cores)."""
+    """``[fn(x) for x in items]`` in order, on up to ``threads`` threads (<= 0: the process's share)."""
     items = list(items)
     n = min(resolve_threads(threads), len(items))
     if n <= 1 or getattr(_inside, "active", False):
