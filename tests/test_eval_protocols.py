@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from bench_agents import StillCamera
 
 from vgpnav_env.cli import main
 from vgpnav_env.eval.ablations import evaluate_ablations
@@ -311,23 +312,6 @@ def test_ablation_rows_are_ordered_as_the_method_predicts_on_noisy_input(build: 
     assert v["topk-weighted-noscale"] > 0.5 and not v["topk-single-noscale"] <= 0.5  # nan: all lost
 
 
-class StillCamera(torch.nn.Module):
-    """A model with the learned backbone's contract that places every image at one pose, depth 1."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.depth = torch.nn.Parameter(torch.ones(()))
-
-    def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
-        n, _, h, w = images.shape
-        extrinsic = torch.eye(4, dtype=torch.float64)[:3].expand(n, 3, 4)
-        return {
-            "extrinsic": extrinsic,
-            "depth": self.depth.expand(n, h, w),
-            "depth_conf": torch.full((n, h, w), 2.0),
-        }
-
-
 @pytest.mark.slow
 def test_learned_backbone_is_selected_with_model_and_weights(
     build: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -346,7 +330,7 @@ def test_learned_backbone_is_selected_with_model_and_weights(
         assert not out.exists()
     torch.save(StillCamera().state_dict(), weights)
     out = tmp_path / "learned"
-    args = ["--backbone", "learned", "--model", f"{__name__}:StillCamera", "--weights", str(weights)]
+    args = ["--backbone", "learned", "--model", "bench_agents:StillCamera", "--weights", str(weights)]
     assert main([*base, *args, "--out", str(out)]) == 0
     r = report(out)
     # One pose for every image: no baseline to triangulate from, every frame lost (not an error).
