@@ -78,6 +78,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import wrap_angle
+from vgpnav_env.map_measures import MapTracker
 from vgpnav_env.measures import EstimateState, Measurements, defined
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
@@ -265,6 +266,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.pose_state = OdometryState(lo, hi, gate=gate, **motion)
         self.last_result: PerceptionResult | None = None
         self.measurements = Measurements("estimate")
+        self.map_measurements = Measurements("map")
+        self.map_tracker = MapTracker(env)
 
     @property
     def fused_map(self) -> LogOddsMap:
@@ -354,6 +357,10 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.pose_state.has_estimate,
         )
         (self.measurements.reset if first else self.measurements.update)(state)
+        if first:
+            self.map_tracker.start(occupancy.spec, info)
+        map_state = self.map_tracker.observe(obstacles, info)
+        (self.map_measurements.reset if first else self.map_measurements.update)(map_state)
         info = dict(info)
         info.update(
             perception=defined(
@@ -375,6 +382,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             obstacles=obstacles,
             map_spec=occupancy.spec,
             **self.measurements.defined_metrics(),
+            **self.map_measurements.metrics(),
         )
         self.env.unwrapped.set_overlay(
             estimated_pose=estimate,
