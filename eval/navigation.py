@@ -179,7 +179,17 @@ class PerceptionAStar:
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
         fused = self.env.get_wrapper_attr("fused_map")
-        action = self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal, self._blocked())
+        covariance = self.env.get_wrapper_attr("pose_state").covariance
+        sigma = 0.0 if covariance is None else float(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()))
+        action = self.agent.act(
+            (x, y, yaw),
+            fused.occupied(),
+            fused.spec,
+            goal,
+            self._blocked(),
+            free=fused.free(),
+            position_sigma=sigma,
+        )
         if self.agent.path is not None:
             self.env.unwrapped.set_overlay(path=self.agent.path)  # drawn by render()
         return action
