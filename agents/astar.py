@@ -83,13 +83,13 @@ class AStarAgent:
         contact_arc_deg: float = 45.0,
         contact_margin: float = 0.06,
         contact_memory: int = 50,
-        cost_weight: float = 4.0,
-        cost_decay: float = 0.15,
+        cost_weight: float = 2.0,
+        cost_decay: float = 0.1,
         success_radius: float = 0.5,
         stop_z: float = 1.64,
         contact_free_frames: int = 2,
         recovery_bumps: int = 3,
-        recovery_window: int = 10,
+        recovery_window: int = 20,
         max_recoveries: int = 3,
     ) -> None:
         if robot_radius <= 0 or goal_radius <= 0 or lookahead <= 0 or forward_step <= 0:

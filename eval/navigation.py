@@ -74,6 +74,11 @@ class Policy(Protocol):
     def act(self, obs: Any) -> Any: ...
 
 
+#: A contact point is reopened where the fused map's occupancy probability is below this (about
+#: four frames' net free evidence: the floor there seen, not only sight lines over it).
+REOPEN_FREE = 0.2
+
+
 class PerceptionAStar:
     """The A* agent on the VGP-Nav wrapper's estimated pose and fused obstacle map.
 
@@ -187,7 +192,7 @@ class PerceptionAStar:
             fused.spec,
             goal,
             self._blocked(),
-            free=fused.free(),
+            free=fused.free(REOPEN_FREE),
             position_sigma=sigma,
         )
         if self.agent.path is not None:
