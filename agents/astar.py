@@ -45,6 +45,10 @@ from vgpnav_env.robot import FORWARD_STEP, ROBOT_RADIUS, TURN_STEP_DEG, Action
 
 logger = logging.getLogger(__name__)
 
+#: A contact point is reopened where the fused map's occupancy probability is below this (about
+#: four frames' net free evidence: the floor there seen, not only sight lines over it).
+REOPEN_FREE = 0.2
+
 
 def inflate(obstacles: NDArray[np.bool_], resolution: float, radius: float) -> NDArray[np.bool_]:
     """Cells whose centre lies within ``radius`` metres of an obstacle cell centre (or on one)."""

@@ -31,7 +31,7 @@ import gymnasium as gym
 import numpy as np
 
 from vgpnav_env.agents import AGENTS, agent_choices, parse_agent, ppo
-from vgpnav_env.agents.astar import AStarAgent
+from vgpnav_env.agents.astar import REOPEN_FREE, AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.agents.proprioception import LOOP_WINDOW
 from vgpnav_env.arguments import positive_int_arg, seed_arg, size_arg
@@ -72,11 +72,6 @@ class Policy(Protocol):
     def reset(self, seed: int | None = None) -> None: ...
 
     def act(self, obs: Any) -> Any: ...
-
-
-#: A contact point is reopened where the fused map's occupancy probability is below this (about
-#: four frames' net free evidence: the floor there seen, not only sight lines over it).
-REOPEN_FREE = 0.2
 
 
 class PerceptionAStar:
