@@ -77,8 +77,8 @@ def test_database_cache_and_prior(database: Database, build: Path, monkeypatch: 
     assert again.z_ground == database.z_ground
     np.testing.assert_array_equal(again.index.database, database.index.database)
     np.testing.assert_array_equal(again.prior.logodds, database.prior.logodds)
-    # A perceiver's map starts from the prior, weighted as a weak belief, and fuses with its
-    # config's log-odds settings.
+    # A perceiver's map starts from the prior times its weight and fuses with its config's
+    # log-odds settings.
     occupancy = OccupancyConfig(l_free=-0.2, l_occ=2.0, clamp=(-1.5, 1.5), prior_weight=0.5)
     perceiver = Perceiver(database, "simulated", config=PerceptionConfig(occupancy=occupancy))
     m = perceiver.map

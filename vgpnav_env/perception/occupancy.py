@@ -44,8 +44,10 @@ class OccupancyConfig:
     ground (None: 2D rays to the obstacle cells); obstacle cells need ``min_cell_points`` points of
     the frame and lie within ``max_obstacle_range`` m of the camera (far depth is the noisiest);
     ``protect_free``: one frame cannot turn a cell seen free into an obstacle. ``prior_weight``
-    scales the database prior's log-odds (a weak belief: the layout has changed, observations
-    override it within a few frames).
+    scales the database prior's log-odds (already a weak belief, clamped to
+    :attr:`~vgpnav_env.perception.database.DatabaseConfig.prior_clamp`: free evidence overrides
+    it within a few frames where the layout changed; at 0.5 the walls' weaker prior cells fell
+    under the occupied threshold and a robot starting beside a wall bumped into it).
 
     ``min_confidence`` 0.2 (was 0.3), with the plane sweep's snapped planar inliers
     (:class:`~vgpnav_env.perception.backbones.planar_fill.PlanarFillConfig`): on the right poses of
@@ -66,7 +68,7 @@ class OccupancyConfig:
     min_cell_points: int = 2
     max_obstacle_range: float | None = None
     protect_free: bool = True
-    prior_weight: float = 0.5
+    prior_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if self.point_stride < 1:
