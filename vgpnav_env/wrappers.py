@@ -51,8 +51,11 @@ occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``), and the m
 ``"estimate"`` measures of :mod:`vgpnav_env.measures`: ``localization_error_m`` (horizontal error
 of the observed ``pose``), ``localized``, ``tracked``, ``relocalized``, ``gross_pose_error`` and
 ``no_estimate``; before the pose state's first estimate (``no_estimate`` True) the pose-error
-entries are left out, not nan (:meth:`~vgpnav_env.measures.Measurements.defined_metrics`). Timings
-stay out of it and nothing is nan, so that ``info`` of identical runs compares equal.
+entries are left out, not nan (:meth:`~vgpnav_env.measures.Measurements.defined_metrics`); then
+the ``"map"`` measures of the fused map against the true occupancy over the cells the camera saw
+(:mod:`vgpnav_env.map_measures`, kept by ``map_tracker``): ``map_precision``, ``map_recall``,
+``map_iou`` (None while undefined) and ``path_phantoms``. Timings stay out of it and nothing is
+nan, so that ``info`` of identical runs compares equal.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
