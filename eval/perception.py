@@ -44,7 +44,7 @@ from vgpnav_env.eval.report import markdown_table
 from vgpnav_env.eval.workers import Workers, add_worker_arguments
 from vgpnav_env.grid import GridSpec
 from vgpnav_env.map_measures import map_score
-from vgpnav_env.perception.occupancy import LogOddsMap
+from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
 from vgpnav_env.robot import OBSTACLE_MIN, ROBOT_HEIGHT
 
 #: Paper Table III (Acc, Comp, Overall in metres) for comparison.
@@ -103,14 +103,16 @@ def points_figure(example: QueryFrame | None, max_points: int = 6000, seed: int 
 class FusedMapScore:
     """The map measures (:mod:`vgpnav_env.map_measures`) of the query frames' fused map.
 
-    The localized frames' metric points are fused, in frame order, into a log-odds map (no
-    database prior: the layout changed) of ``resolution`` m cells, rays from the estimated camera;
-    the truth is the true visible surface of every frame: its cells with a point in the obstacle band
-    (:data:`~vgpnav_env.robot.OBSTACLE_MIN` to the robot height) are true obstacles, its cells with a
-    point below the robot height are observed (lost frames' too: what the map missed there counts).
+    The localized frames' metric points are fused, in frame order, as the perceiver fuses them
+    (``config``) into a log-odds map (no database prior: the layout changed) of ``resolution`` m
+    cells, sight lines from the estimated camera; the truth is the true visible surface of every
+    frame: its cells with a point in the obstacle band (:data:`~vgpnav_env.robot.OBSTACLE_MIN` to
+    the robot height) are true obstacles, its cells with a point below the robot height are observed
+    (lost frames' too: what the map missed there counts).
     """
 
-    def __init__(self, resolution: float = 0.05) -> None:
+    def __init__(self, config: OccupancyConfig | None = None, resolution: float = 0.05) -> None:
+        self.config = config or OccupancyConfig()
         self.resolution = float(resolution)
         self._spec = GridSpec((0.0, 0.0), self.resolution, (1, 1))  # cell indices only, unbounded
         self.observed: set[tuple[int, int]] = set()
@@ -138,9 +140,14 @@ class FusedMapScore:
         lo = cells.min(axis=0) - 2
         shape = tuple(int(v) for v in cells.max(axis=0) - lo + 3)
         spec = GridSpec((lo[1] * self.resolution, lo[0] * self.resolution), self.resolution, shape)
-        fused = LogOddsMap(spec)
+        c = self.config
+        fused = LogOddsMap(spec, c.l_free, c.l_occ, c.clamp)
         for points, z_ground, height, camera_xy in self.frames:
-            fused.update(points, z_ground, height, camera_xy=camera_xy)
+            fused.update(
+                points, z_ground, height, camera_xy=camera_xy, free_tol=c.free_tol,
+                obstacle_min=c.obstacle_min, clear_height=c.clear_height, min_cell_points=c.min_cell_points,
+                max_obstacle_range=c.max_obstacle_range, protect_free=c.protect_free,
+            )  # fmt: skip
 
         def grid(found: set[tuple[int, int]]) -> NDArray[np.bool_]:
             out = np.zeros(shape, bool)
@@ -160,7 +167,7 @@ def evaluate_perception(
     (:class:`FusedMapScore`)."""
     records: list[FrameRecord] = []
     example: QueryFrame | None = None
-    fused = FusedMapScore()
+    fused = FusedMapScore(run.config.occupancy)
     for frame in perceive_queries(run, workers=workers, progress=progress):
         records.append(frame.record)
         fused.add(frame)
