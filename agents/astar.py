@@ -15,7 +15,8 @@ map changes so that the rest of the path is
 no longer traversable (or ``replan_every`` steps after the last plan), when it strays from the
 path, and when a forward action was blocked (its bump sensor, else no progress of the pose; it then
 marks contact points ahead as obstacles, except where its body stood: a contact point its body
-covered, or whose cell the map has since seen free on consecutive frames, is forgotten).
+covered, or whose cell the map has since seen free on consecutive frames some time after the bump,
+is forgotten).
 
 The plan is the cheapest path on a costmap, as ROS nav2's inflation layer: cells within the
 inflation radius (robot radius + margin) of an obstacle are lethal, and beyond it a cell costs
@@ -92,6 +93,7 @@ class AStarAgent:
         success_radius: float = 0.5,
         stop_z: float = 1.64,
         contact_free_frames: int = 2,
+        reopen_after: int = 50,
         recovery_bumps: int = 3,
         recovery_window: int = 20,
         max_recoveries: int = 3,
@@ -139,6 +141,10 @@ class AStarAgent:
         if contact_free_frames < 1 or recovery_bumps < 2 or recovery_window < recovery_bumps:
             raise ValueError("need contact_free_frames >= 1 and 2 <= recovery_bumps <= recovery_window")
         self.contact_free_frames = int(contact_free_frames)
+        # Only contacts at least this many decisions old are reopened: a contact point that lands on
+        # floor seen free in front of the wall it stands for (pose noise) kept being reopened and
+        # bumped again (classical home seed 3: 18 bumps along one wall).
+        self.reopen_after = int(reopen_after)
         self.recovery_bumps, self.recovery_window = int(recovery_bumps), int(recovery_window)
         self.max_recoveries = int(max_recoveries)
         self.turns_per_circle = int(np.ceil(2.0 * np.pi / self.turn_step - 1e-9))
@@ -155,6 +161,7 @@ class AStarAgent:
         # for how many consecutive decisions since the map has seen its cell free
         self._contacts: list[tuple[NDArray[np.float64], int, bool, int]] = []
         self._bumps = 0
+        self._bump_decision: dict[int, int] = {}  # bump number -> the decision it happened at
         self._steps = 0
         self._bump_steps: deque[int] = deque(maxlen=self.recovery_bumps)
         self._spin = 0  # turns left of the recovery spin
@@ -383,13 +390,14 @@ class AStarAgent:
         return Action.TURN_LEFT
 
     def reopen_contacts(self, free: NDArray[np.bool_], spec: GridSpec) -> None:
-        """Count, per contact point, the consecutive calls whose ``free`` grid shows its cell free,
-        and forget those seen free ``contact_free_frames`` times (a phantom contact: what the robot
-        bumped into lies elsewhere, or moved)."""
+        """Count, per contact point at least ``reopen_after`` decisions old, the consecutive calls
+        whose ``free`` grid shows its cell free, and forget those seen free ``contact_free_frames``
+        times (a phantom contact: what the robot bumped into lies elsewhere, or moved)."""
         kept = []
         for p, bump, straight, seen in self._contacts:
             cell = spec.world_to_cell(p)
-            is_free = bool(spec.contains(cell) and free[cell[0], cell[1]])
+            old = self._steps - self._bump_decision.get(bump, self._steps) >= self.reopen_after
+            is_free = bool(old and spec.contains(cell) and free[cell[0], cell[1]])
             seen = seen + 1 if is_free else 0
             if seen < self.contact_free_frames:
                 kept.append((p, bump, straight, seen))
@@ -413,6 +421,7 @@ class AStarAgent:
         self._contacts = [c for c in self._contacts if np.linalg.norm(c[0] - xy) > clear]
         if blocked_yaw is not None:
             self._bumps += 1
+            self._bump_decision[self._bumps] = self._steps
             ahead = self.robot_radius + 0.5 * resolution
             yaw = blocked_yaw + self.contact_arc
             marks = xy + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)

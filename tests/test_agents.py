@@ -387,7 +387,7 @@ def test_a_contact_the_map_sees_free_is_reopened():
     cells free on two decisions the plan goes straight through again (the contacts used to stay
     until the robot's body covered them: detours kept after a phantom cleared)."""
     occ, spec = room(with_wall=False)
-    agent = AStarAgent(robot_radius=RADIUS)
+    agent = AStarAgent(robot_radius=RADIUS, reopen_after=1)
     pose, goal = (1.0, 1.0, np.pi / 2), (1.0, 4.0)
     assert agent.act(pose, occ, spec, goal) == FORWARD
     agent.act(pose, occ, spec, goal, bumped=True)  # blocked: contacts ahead
@@ -400,6 +400,12 @@ def test_a_contact_the_map_sees_free_is_reopened():
     agent.act(pose, occ, spec, goal, bumped=False, free=seen_free)
     assert agent.blocked_points == []
     assert np.abs(agent.path[:, 0] - 1.0).max() < 0.05  # straight ahead again
+    fresh = AStarAgent(robot_radius=RADIUS)  # by default only contacts 50 decisions old
+    fresh.act(pose, occ, spec, goal)
+    fresh.act(pose, occ, spec, goal, bumped=True)
+    for _ in range(3):
+        fresh.act(pose, occ, spec, goal, bumped=False, free=seen_free)
+    assert len(fresh.blocked_points) >= 1
 
 
 @pytest.mark.parametrize(("sigma", "stops"), [(0.0, True), (0.05, True), (0.15, False), (0.4, False)])
