@@ -15,7 +15,20 @@ map changes so that the rest of the path is
 no longer traversable (or ``replan_every`` steps after the last plan), when it strays from the
 path, and when a forward action was blocked (its bump sensor, else no progress of the pose; it then
 marks contact points ahead as obstacles, except where its body stood: a contact point its body
-covered is forgotten).
+covered, or whose cell the map has since seen free on consecutive frames some time after the bump,
+is forgotten).
+
+The plan is the cheapest path on a costmap, as ROS nav2's inflation layer: cells within the
+inflation radius (robot radius + margin) of an obstacle are lethal, and beyond it a cell costs
+``1 + cost_weight * exp(-(clearance - inflation) / cost_decay)`` per metre, so the path keeps to the
+middle of doorways and passages instead of grazing their edges (its smoothing never takes a
+shortcut nearer to obstacles than the plan went). Mapped cells within the robot radius of the goal
+are ignored (the task puts goals where the robot fits). It stops only when the goal lies within
+``success_radius`` with the estimate's uncertainty (``distance + stop_z * sigma``, sigma the
+position standard deviation it is given); too unsure at the end of its path, it turns in place for
+a better fix (one full turn at most). Recovery (nav2's spin): ``recovery_bumps`` bumps within
+``recovery_window`` decisions make it turn once in full in place, so the camera maps what it keeps
+bumping into, before it plans again.
 """
 
 from __future__ import annotations
@@ -32,6 +45,10 @@ from vgpnav_env.grid import GridSpec, line_of_sight, shortest_path
 from vgpnav_env.robot import FORWARD_STEP, ROBOT_RADIUS, TURN_STEP_DEG, Action
 
 logger = logging.getLogger(__name__)
+
+#: A contact point is reopened where the fused map's occupancy probability is below this (about
+#: four frames' net free evidence: the floor there seen, not only sight lines over it).
+REOPEN_FREE = 0.2
 
 
 def inflate(obstacles: NDArray[np.bool_], resolution: float, radius: float) -> NDArray[np.bool_]:
@@ -71,6 +88,15 @@ class AStarAgent:
         contact_arc_deg: float = 45.0,
         contact_margin: float = 0.06,
         contact_memory: int = 50,
+        cost_weight: float = 2.0,
+        cost_decay: float = 0.1,
+        success_radius: float = 0.5,
+        stop_z: float = 1.64,
+        contact_free_frames: int = 2,
+        reopen_after: int = 50,
+        recovery_bumps: int = 3,
+        recovery_window: int = 20,
+        max_recoveries: int = 3,
     ) -> None:
         if robot_radius <= 0 or goal_radius <= 0 or lookahead <= 0 or forward_step <= 0:
             raise ValueError("robot_radius, goal_radius, lookahead and forward_step must be positive metres")
@@ -104,6 +130,24 @@ class AStarAgent:
                              f"{contact_margin}, {contact_memory}")  # fmt: skip
         self.contact_clearance = self.robot_radius - float(contact_margin)
         self.contact_memory = int(contact_memory)
+        # Costmap (as ROS nav2's inflation layer): beyond the inflation radius a cell costs
+        # 1 + cost_weight * exp(-(clearance - inflation) / cost_decay) per metre crossed.
+        if cost_weight < 0 or cost_decay <= 0:
+            raise ValueError(f"need cost_weight >= 0 and cost_decay > 0 m, got {cost_weight}, {cost_decay}")
+        self.cost_weight, self.cost_decay = float(cost_weight), float(cost_decay)
+        # Stop only where the goal is within success_radius with the estimate's uncertainty:
+        # distance + stop_z * sigma <= success_radius (sigma: the position standard deviation).
+        self.success_radius, self.stop_z = float(success_radius), float(stop_z)
+        if contact_free_frames < 1 or recovery_bumps < 2 or recovery_window < recovery_bumps:
+            raise ValueError("need contact_free_frames >= 1 and 2 <= recovery_bumps <= recovery_window")
+        self.contact_free_frames = int(contact_free_frames)
+        # Only contacts at least this many decisions old are reopened: a contact point that lands on
+        # floor seen free in front of the wall it stands for (pose noise) kept being reopened and
+        # bumped again, the same wall many times over.
+        self.reopen_after = int(reopen_after)
+        self.recovery_bumps, self.recovery_window = int(recovery_bumps), int(recovery_window)
+        self.max_recoveries = int(max_recoveries)
+        self.turns_per_circle = int(np.ceil(2.0 * np.pi / self.turn_step - 1e-9))
         self.reset()
 
     def reset(self) -> None:
@@ -113,9 +157,17 @@ class AStarAgent:
         self._along: NDArray[np.float64] | None = None
         self._free: NDArray[np.bool_] | None = None
         self._spec: GridSpec | None = None
-        # contact points (world x, y in m), each with its bump's number and whether straight ahead
-        self._contacts: list[tuple[NDArray[np.float64], int, bool]] = []
+        # contact points (world x, y in m), each with its bump's number, whether straight ahead and
+        # for how many consecutive decisions since the map has seen its cell free
+        self._contacts: list[tuple[NDArray[np.float64], int, bool, int]] = []
         self._bumps = 0
+        self._bump_decision: dict[int, int] = {}  # bump number -> the decision it happened at
+        self._steps = 0
+        self._bump_steps: deque[int] = deque(maxlen=self.recovery_bumps)
+        self._spin = 0  # turns left of the recovery spin
+        self._unsure = 0  # turns at the path's end, too unsure of the pose to stop
+        self.recoveries = 0
+        self._cost: NDArray[np.float64] | None = None
         self._visited: deque[NDArray[np.float64]] = deque(maxlen=self.contact_memory)
         self.replans = 0
         self._plan_key: tuple | None = None
@@ -130,7 +182,7 @@ class AStarAgent:
     @property
     def blocked_points(self) -> list[NDArray[np.float64]]:
         """The contact points (world x, y in m) the plan treats as obstacles."""
-        return [p for p, _, _ in self._contacts]
+        return [c[0] for c in self._contacts]
 
     def traversable(
         self,
@@ -146,6 +198,17 @@ class AStarAgent:
         truth's). The robot's own footprint is always traversable (mapped obstacles under the robot
         are errors), so a plan can start; contact points are not cleared from under it (a contact
         lies a robot radius ahead, and its cell's centre can fall within the radius)."""
+        return self._layers(obstacles, spec, pose, inflation, contacts)[0]
+
+    def _layers(
+        self,
+        obstacles: NDArray[np.bool_],
+        spec: GridSpec,
+        pose: ArrayLike,
+        inflation: float | None = None,
+        contacts: list[NDArray[np.float64]] | None = None,
+    ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        """:meth:`traversable` and the costmap over it (>= 1 on traversable cells, module docstring)."""
         occ = obstacles.copy()
         near = np.linalg.norm(spec.centres() - np.asarray(pose, float)[:2], axis=-1) <= self.robot_radius
         occ[near] = False
@@ -154,11 +217,16 @@ class AStarAgent:
             cells = spec.world_to_cell(np.asarray(contacts))
             cells = cells[spec.contains(cells)]
             occ[cells[:, 0], cells[:, 1]] = True
-        free = ~inflate(occ, spec.resolution, self.inflation if inflation is None else inflation)
+        inflation = self.inflation if inflation is None else inflation
+        clearance = np.full(occ.shape, np.inf)
+        if occ.any():
+            clearance = distance_transform_edt(~occ) * spec.resolution
+        free = clearance > inflation
         if self.navigable is not None:
             free &= self.navigable
         free[near] = True
-        return free
+        cost = 1.0 + self.cost_weight * np.exp(-np.maximum(clearance - inflation, 0.0) / self.cost_decay)
+        return free, cost
 
     @staticmethod
     def _reachable_target(
@@ -187,9 +255,12 @@ class AStarAgent:
         goal = np.asarray(goal, float)[:2]
         self.replans += 1
         tight = 0.5 * self.robot_radius
+        # The task puts goals where the robot fits: mapped cells within its radius of the goal are
+        # errors (e.g. phantoms that made it stop short of an unreachable goal).
+        obstacles = obstacles & (np.linalg.norm(spec.centres() - goal, axis=-1) > self.robot_radius)
         empty = np.zeros_like(obstacles)
-        ahead = [p for p, _, straight in self._contacts if straight]
-        last = [p for p, bump, _ in self._contacts if bump == self._bumps]
+        ahead = [c[0] for c in self._contacts if c[2]]
+        last = [c[0] for c in self._contacts if c[1] == self._bumps]
         # Straight-ahead marks before the last bump's alone: each bump's marks alone leave open the
         # heading of the other, and the robot alternated between two bumped headings.
         attempts = (
@@ -202,10 +273,10 @@ class AStarAgent:
             (empty, tight, []),
         )
         for grid, inflation, contacts in attempts:
-            free = self.traversable(grid, spec, pose, inflation, contacts)
+            free, cost = self._layers(grid, spec, pose, inflation, contacts)
             target = self._reachable_target(free, spec, goal)
             try:
-                path = shortest_path(free, spec, pose[:2], target)
+                path = shortest_path(free, spec, pose[:2], target, cost=cost)
             except ValueError:  # the pose estimate lies off the map
                 path = None
             if path is not None and len(path) > 0:
@@ -262,11 +333,16 @@ class AStarAgent:
         spec: GridSpec,
         goal: ArrayLike,
         bumped: bool | None = None,
+        free: ArrayLike | None = None,
+        position_sigma: float = 0.0,
     ) -> Action:
         """Next discrete :class:`~vgpnav_env.robot.Action` from the estimated ``pose``,
         the obstacle grid (bool, ``spec.shape``) and the goal (x, y). ``bumped``: whether the last
         action was blocked (a bump sensor); None: a forward step that moved the pose less than
-        ``min_progress`` steps was."""
+        ``min_progress`` steps was. ``free``: the cells the map has seen free (bool, optional): a
+        contact point whose cell it shows free on ``contact_free_frames`` consecutive decisions is
+        forgotten. ``position_sigma``: the position standard deviation of the estimate (m; the
+        stop rule, module docstring)."""
         pose = np.asarray(pose, float)
         goal = np.asarray(goal, float)[:2]
         obstacles = np.asarray(obstacles, bool)
@@ -281,9 +357,52 @@ class AStarAgent:
             moved = float(np.linalg.norm(pose[:2] - self._last_pose[:2]))
             blocked = (moved < self.min_progress * self.forward_step) if bumped is None else bool(bumped)
         self.update_contacts(pose[:2], self._last_pose[2] if blocked else None, spec.resolution)
-        action = self._decide(pose, obstacles, spec, goal, blocked)
+        if free is not None:
+            self.reopen_contacts(np.asarray(free, bool), spec)
+        self._steps += 1
+        if blocked:
+            self._bump_steps.append(self._steps)
+        action = self._recover(blocked)
+        if action is None:
+            action = self._decide(pose, obstacles, spec, goal, blocked, float(position_sigma))
         self._last_action, self._last_pose = action, pose
         return action
+
+    def _recover(self, blocked: bool) -> Action | None:
+        """The recovery spin (ROS nav2's spin recovery): after ``recovery_bumps`` bumps within
+        ``recovery_window`` decisions, one full turn in place (at most ``max_recoveries`` per
+        episode) so that the camera maps what the robot keeps bumping into; then a new plan."""
+        burst = (
+            blocked
+            and len(self._bump_steps) == self.recovery_bumps
+            and self._bump_steps[-1] - self._bump_steps[0] < self.recovery_window
+        )
+        if burst and self._spin == 0 and self.recoveries < self.max_recoveries:
+            self.recoveries += 1
+            self._spin = self.turns_per_circle
+            self._bump_steps.clear()
+        if self._spin == 0:
+            return None
+        self._spin -= 1
+        if self._spin == 0:
+            self.path = None  # plan afresh on what the spin saw
+        return Action.TURN_LEFT
+
+    def reopen_contacts(self, free: NDArray[np.bool_], spec: GridSpec) -> None:
+        """Count, per contact point at least ``reopen_after`` decisions old, the consecutive calls
+        whose ``free`` grid shows its cell free, and forget those seen free ``contact_free_frames``
+        times (a phantom contact: what the robot bumped into lies elsewhere, or moved)."""
+        kept = []
+        for p, bump, straight, seen in self._contacts:
+            cell = spec.world_to_cell(p)
+            old = self._steps - self._bump_decision.get(bump, self._steps) >= self.reopen_after
+            is_free = bool(old and spec.contains(cell) and free[cell[0], cell[1]])
+            seen = seen + 1 if is_free else 0
+            if seen < self.contact_free_frames:
+                kept.append((p, bump, straight, seen))
+        if len(kept) < len(self._contacts):
+            self.path = None  # a reopened cell may open a shorter way
+        self._contacts = kept
 
     def update_contacts(self, xy: NDArray[np.float64], blocked_yaw: float | None, resolution: float) -> None:
         """Forget the contact points the robot's body now covers (its centre ``xy``, m) and, after a
@@ -300,6 +419,7 @@ class AStarAgent:
         self._contacts = [c for c in self._contacts if np.linalg.norm(c[0] - xy) > clear]
         if blocked_yaw is not None:
             self._bumps += 1
+            self._bump_decision[self._bumps] = self._steps
             ahead = self.robot_radius + 0.5 * resolution
             yaw = blocked_yaw + self.contact_arc
             marks = xy + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
@@ -308,7 +428,7 @@ class AStarAgent:
             covered &= self.contact_arc != 0.0  # the heading that bumped stays closed from here
             arc = self.contact_arc[~covered]
             self._contacts.extend(
-                (p, self._bumps, bool(a == 0.0)) for p, a in zip(marks[~covered], arc, strict=True)
+                (p, self._bumps, bool(a == 0.0), 0) for p, a in zip(marks[~covered], arc, strict=True)
             )
 
     def _path_clear(self, free: NDArray[np.bool_], xy: NDArray[np.float64]) -> bool:
@@ -317,11 +437,22 @@ class AStarAgent:
         cells = self._spec.world_to_cell(rest)
         return bool(np.all(self._spec.contains(cells)) and np.all(free[cells[:, 0], cells[:, 1]]))
 
+    def _sure_within(self, distance: float, sigma: float) -> bool:
+        """Whether the goal lies within the success radius given the estimate's uncertainty."""
+        return distance + self.stop_z * sigma <= self.success_radius
+
     def _decide(
-        self, pose: NDArray, obstacles: NDArray[np.bool_], spec: GridSpec, goal: NDArray, blocked: bool
+        self,
+        pose: NDArray,
+        obstacles: NDArray[np.bool_],
+        spec: GridSpec,
+        goal: NDArray,
+        blocked: bool,
+        sigma: float = 0.0,
     ) -> Action:
         distance = float(np.linalg.norm(goal - pose[:2]))
-        if distance <= self.goal_radius or (blocked and distance <= self.blocked_goal_radius):
+        near = distance <= self.goal_radius or (blocked and distance <= self.blocked_goal_radius)
+        if near and self._sure_within(distance, sigma):
             return Action.STOP  # at the goal, or bumped into something just short of it
         if self._plan_key is not None and spec == self._plan_key[0]:
             planned = np.asarray(self._plan_key[1])
@@ -348,5 +479,9 @@ class AStarAgent:
         if self.path is None:  # off the map: head for the goal, turning away after a bump
             return Action.TURN_LEFT if blocked else self._turn_or_forward(pose, goal)
         if np.linalg.norm(self.path[-1] - pose[:2]) < 0.5 * self.forward_step:
-            return Action.STOP  # at the reachable point closest to an unreachable goal
+            if self._sure_within(distance, sigma) or self._unsure >= self.turns_per_circle:
+                return Action.STOP  # at the reachable point closest to an unreachable goal
+            self._unsure += 1  # too unsure to stop here: one turn in place for a better fix
+            return Action.TURN_LEFT
+        self._unsure = 0
         return self._turn_or_forward(pose, self._waypoint(pose[:2]))

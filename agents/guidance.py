@@ -9,7 +9,8 @@ bearing rad from the estimated heading; the goal itself when there is no path), 
 of Active Neural SLAM. When the observation carries the bump sensor (``agents.proprioception``), a
 blocked forward step marks contact points on the robot's front, as ``AStarAgent`` does, and the path
 goes around them (an obstacle the map does not hold no longer pins the path, and the policy following
-it, to a wall). Nothing privileged: the same inputs as ``PerceptionAStar``. The policy then
+it, to a wall) until the map sees their cells free. Nothing privileged: the same inputs as
+``PerceptionAStar``. The policy then
 learns the local part (following the path, stopping at the goal); the plain recipe has to learn
 the planning too.
 
@@ -27,7 +28,7 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
-from vgpnav_env.agents.astar import AStarAgent, _densify
+from vgpnav_env.agents.astar import REOPEN_FREE, AStarAgent, _densify
 from vgpnav_env.agents.proprioception import BUMPED_KEY, LAST_ACTION_KEY
 from vgpnav_env.geometry import wrap_angle
 from vgpnav_env.robot import Action
@@ -97,6 +98,7 @@ class PathChannel:
         occupied = fused_map.occupied()
         bumped = bool(obs.get(BUMPED_KEY)) and obs.get(LAST_ACTION_KEY) == Action.FORWARD
         self.planner.update_contacts(np.array([x, y]), yaw if bumped else None, fused_map.spec.resolution)
+        self.planner.reopen_contacts(fused_map.free(REOPEN_FREE), fused_map.spec)
         if bumped or self._replan(occupied, fused_map.spec, goal, np.array([x, y])):
             self.planner.plan((x, y, yaw), occupied, fused_map.spec, goal)
             path = self.planner.path

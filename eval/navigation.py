@@ -31,7 +31,7 @@ import gymnasium as gym
 import numpy as np
 
 from vgpnav_env.agents import AGENTS, agent_choices, parse_agent, ppo
-from vgpnav_env.agents.astar import AStarAgent
+from vgpnav_env.agents.astar import REOPEN_FREE, AStarAgent
 from vgpnav_env.agents.oracle import OracleAgent
 from vgpnav_env.agents.proprioception import LOOP_WINDOW
 from vgpnav_env.arguments import positive_int_arg, seed_arg, size_arg
@@ -177,7 +177,17 @@ class PerceptionAStar:
         dist, bearing = np.asarray(obs["goal_rel"], float)
         goal = np.array([x + dist * np.cos(yaw + bearing), y + dist * np.sin(yaw + bearing)])
         fused = self.env.get_wrapper_attr("fused_map")
-        action = self.agent.act((x, y, yaw), fused.occupied(), fused.spec, goal, self._blocked())
+        covariance = self.env.get_wrapper_attr("pose_state").covariance
+        sigma = 0.0 if covariance is None else float(np.sqrt(np.linalg.eigvalsh(covariance[:2, :2]).max()))
+        action = self.agent.act(
+            (x, y, yaw),
+            fused.occupied(),
+            fused.spec,
+            goal,
+            self._blocked(),
+            free=fused.free(REOPEN_FREE),
+            position_sigma=sigma,
+        )
         if self.agent.path is not None:
             self.env.unwrapped.set_overlay(path=self.agent.path)  # drawn by render()
         return action
@@ -300,7 +310,9 @@ class EpisodeRecord:
     estimate ``localization_error_m`` (mean over the frames acted on) and ``lost_fraction`` (None
     without an estimate). ``frames``: the per-frame values of the per-frame measures (uuid -> one
     value per frame the agent acted on; empty without an estimate). ``collision_steps``: the steps
-    whose motion was blocked (the robot stood at ``trajectory[s + 1]`` after step ``s``).
+    whose motion was blocked (the robot stood at ``trajectory[s + 1]`` after step ``s``);
+    ``burst_step``: the step that completed the first collision burst (:func:`run_episode`), None
+    without one.
     """
 
     index: int
@@ -314,6 +326,7 @@ class EpisodeRecord:
     estimated_trajectory: list[list[float]] | None = field(default=None, repr=False)
     frames: dict[str, list[Any]] = field(default_factory=dict, repr=False)
     collision_steps: list[int] = field(default_factory=list, repr=False)
+    burst_step: int | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """The record as one flat JSON-ready dict (the metrics beside the other fields)."""
@@ -342,23 +355,32 @@ def classify_failure(
     return "stopped-too-far" if stopped else "timeout"
 
 
+#: A collision burst: this many blocked steps within the last :data:`BURST_WINDOW` steps.
+BURST_COLLISIONS, BURST_WINDOW = 3, 10
+
+
 def run_episode(
     env: gym.Env,
     policy: Policy,
     seed: int,
     index: int = 0,
     on_step: Callable[[int], None] | None = None,
+    on_burst: Callable[[int], None] | None = None,
 ) -> EpisodeRecord:
     """Drive one episode ``reset(seed=seed)`` to its end with ``policy``.
 
     Per-frame measures are collected from ``info`` at every frame the policy acts on; the others
-    give their value at the end of the episode. ``on_step(n)`` is called after the n-th step.
+    give their value at the end of the episode. ``on_step(n)`` is called after the n-th step;
+    ``on_burst(n)`` once, after the step that completes the episode's first collision burst
+    (:data:`BURST_COLLISIONS` blocked steps within :data:`BURST_WINDOW`), e.g. to keep the map and
+    plan of that moment; the record's ``burst_step`` is that step's index.
     """
     obs, info = env.reset(seed=seed)
     policy.reset(seed)
     frames: dict[str, list[Any]] = {m.uuid: [] for m in _recorded() if m.per_frame}
     estimated: list[list[float]] = []
     collisions: list[int] = []
+    burst: int | None = None
     done, steps = False, 0
     while not done:
         if isinstance(obs, dict) and "pose" in obs:
@@ -370,6 +392,11 @@ def run_episode(
         obs, _, terminated, truncated, info = env.step(policy.act(obs))
         if info["blocked"]:
             collisions.append(int(info["steps"]) - 1)
+            recent = sum(c > collisions[-1] - BURST_WINDOW for c in collisions)
+            if burst is None and recent >= BURST_COLLISIONS:
+                burst = collisions[-1]
+                if on_burst is not None:
+                    on_burst(burst)
         done = terminated or truncated
         steps += 1
         if on_step is not None:
@@ -391,6 +418,7 @@ def run_episode(
         estimated_trajectory=estimated or None,
         frames=frames,
         collision_steps=collisions,
+        burst_step=burst,
     )
 
 
@@ -460,11 +488,20 @@ class Navigator:
 
 def episode_task(state: Navigator, item: tuple[int, int]) -> tuple[EpisodeRecord, bytes | None]:
     """One episode ``(index, seed)`` on a worker: its record and (with plots) its picture."""
-    from vgpnav_env.eval.navigation_plots import episode_png
+    from vgpnav_env.eval.navigation_plots import MapSnapshot, episode_png
 
     index, seed = item
-    record = run_episode(state.env, state.policy, seed, index, lambda n: note(f"episode {index}: step {n}"))
-    return record, episode_png(state.env, record) if state.plots else None
+    snapshots: list[MapSnapshot] = []
+
+    def keep(step: int) -> None:
+        if state.plots:
+            snapshots.append(MapSnapshot.of(state.env, state.policy, step))
+
+    record = run_episode(
+        state.env, state.policy, seed, index, lambda n: note(f"episode {index}: step {n}"), on_burst=keep
+    )
+    burst = snapshots[0] if snapshots else None
+    return record, episode_png(state.env, record, state.policy, burst) if state.plots else None
 
 
 def geodesic_task(state: Navigator, item: tuple[int, int]) -> float:
@@ -630,6 +667,10 @@ def write_navigation_report(
         title,
         report,
         sections=[
+            "Map measures (`map prec.`, `map recall`, `map_iou`, `path phantoms`) score the fused map at the "
+            "end of the episode against the true occupancy of the changed layout over the cells the camera "
+            "saw (within 5 m), with one cell of tolerance; path phantoms are occupied cells with no true "
+            "obstacle near, within the robot radius of the true shortest path. "
             "Means are over episodes; `p95_localization_error_m` is over all frames the agent acted on "
             "that had a pose estimate. `lost frames` is the fraction of those frames on which "
             "perception did not localize (the pose was carried by odometry); `no estimate` the "
@@ -640,8 +681,10 @@ def write_navigation_report(
             "## Episodes\n\n" + episode_table(records),
             "## Episodes, one picture each\n\nTop left: the true (green) and estimated (orange) "
             "trajectories on the ground-truth map; red dots mark frames where perception was lost, "
-            "black crosses collisions. Top right: the fused obstacle map at the end of the episode. "
-            "Bottom: pose error over time, lost stretches shaded.\n\n" + pictures_md,
+            "black crosses collisions. Right: the fused obstacle map and the agent's plan at the end of the "
+            "episode and, left of it, at the first collision burst (3 blocked steps within 10) when there "
+            "was one; black occupied near a true obstacle, red phantoms, blue observed true obstacles the "
+            "map misses. Bottom: pose error over time, lost stretches shaded.\n\n" + pictures_md,
         ],
         figures=figures,
         settings=settings,
@@ -661,6 +704,11 @@ def headline(report: dict[str, Any]) -> str:
         line += (
             f", pose error mean {report['mean_localization_error_m']:.2f} m / p95 "
             f"{report['p95_localization_error_m']:.2f} m, lost {report['mean_lost_fraction']:.0%} of frames"
+        )
+    if report.get("mean_map_precision") is not None:
+        p, r, iou = (report.get(k) for k in ("mean_map_precision", "mean_map_recall", "mean_map_iou"))
+        line += "; map precision {} / recall {} / IoU {}, {:.1f} phantom cells on the true path".format(
+            *(f"{v:.2f}" if v is not None else "n/a" for v in (p, r, iou)), report["mean_path_phantom_cells"]
         )
     failures = ", ".join(f"{k} {v}" for k, v in report["failures"].items() if v)
     return line + (f"; failures: {failures}" if failures else "")

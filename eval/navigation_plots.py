@@ -1,8 +1,10 @@
 """Pictures of the navigation protocol: one per episode, one across episodes (matplotlib, Agg).
 
 :func:`episode_figure` shows what happened in an episode: the true and estimated trajectories on
-the ground-truth map with lost frames and collisions marked, the fused obstacle map the agent had
-at the end, and the pose error over time with the lost stretches shaded. :func:`summary_figure`:
+the ground-truth map with lost frames and collisions marked, the fused obstacle map and the plan
+the agent had at the first collision burst (when there was one) and at the end -- phantoms and
+missed obstacles coloured against the true map (:mod:`vgpnav_env.map_measures`) -- and the pose
+error over time with the lost stretches shaded. :func:`summary_figure`:
 the pose-error CDF over all frames of all episodes and the lost fraction of every episode.
 Figures are built with ``matplotlib.figure.Figure`` (no pyplot state), so workers can draw them.
 """
@@ -10,6 +12,7 @@ Figures are built with ``matplotlib.figure.Figure`` (no pyplot state), so worker
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
@@ -18,6 +21,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from vgpnav_env.eval.report import plot_cdf
+from vgpnav_env.grid import GridSpec
 
 if TYPE_CHECKING:
     from vgpnav_env.eval.navigation import EpisodeRecord
@@ -64,20 +68,74 @@ def _circle(centre: Any, radius: float) -> Any:
     return Circle(centre, radius, fill=False, ls=":", color=_GOAL)
 
 
-def _fused_map_panel(ax: Any, env: gym.Env, record: EpisodeRecord) -> None:
-    fused = env.get_wrapper_attr("fused_map")
-    img = np.full((*fused.spec.shape, 3), 0.55)
-    img[fused.free()] = 1.0
-    img[fused.occupied()] = (0.8, 0.1, 0.1)
-    (x0, y0), (x1, y1) = fused.spec.bounds
+@dataclass(frozen=True)
+class MapSnapshot:
+    """The fused map and the plan at one step: ``occupied`` and ``free`` cells over ``spec``, the
+    ``truth`` and the ``observed`` cells of :class:`~vgpnav_env.map_measures.MapTracker`, the agent's ``path``
+    (world (N, 2) or None), the ``estimate`` and ``true`` poses (x, y, yaw)."""
+
+    step: int
+    spec: GridSpec
+    occupied: np.ndarray
+    free: np.ndarray
+    truth: np.ndarray
+    observed: np.ndarray
+    path: np.ndarray | None
+    estimate: np.ndarray | None
+    true: np.ndarray
+
+    @classmethod
+    def of(cls, env: gym.Env, policy: Any, step: int) -> MapSnapshot | None:
+        """The snapshot of ``env`` (a perception wrapper; None without a fused map) now."""
+        try:
+            fused = env.get_wrapper_attr("fused_map")
+            tracker = env.get_wrapper_attr("map_tracker")
+        except AttributeError:
+            return None
+        path = getattr(getattr(policy, "agent", None), "path", None)
+        estimate = getattr(env.get_wrapper_attr("pose_state"), "estimate", None)
+        return cls(
+            step,
+            fused.spec,
+            fused.occupied(),
+            fused.free(),
+            tracker.truth.copy(),
+            tracker.observed.copy(),
+            None if path is None else np.asarray(path, float).copy(),
+            None if estimate is None else np.asarray(estimate, float).copy(),
+            np.asarray(env.unwrapped.pose, float).copy(),
+        )
+
+
+def _map_panel(ax: Any, env: gym.Env, record: EpisodeRecord, snap: MapSnapshot, title: str) -> None:
+    """The fused map of ``snap``: free white, unknown grey, occupied near a true obstacle black,
+    phantoms (no true obstacle within the score's tolerance) red, observed true obstacles the map
+    misses blue; the plan, the estimated and true poses, the trajectory up to the step."""
+    from vgpnav_env.map_measures import TOLERANCE_CELLS, phantom_cells
+
+    img = np.full((*snap.spec.shape, 3), 0.6)
+    phantom = phantom_cells(snap.occupied, snap.truth)
+    missed = phantom_cells(snap.truth & snap.observed, snap.occupied, TOLERANCE_CELLS)
+    img[snap.free] = 1.0
+    img[snap.occupied] = (0.1, 0.1, 0.1)
+    img[phantom] = (0.9, 0.1, 0.1)
+    img[missed] = (0.1, 0.35, 0.95)
+    (x0, y0), (x1, y1) = snap.spec.bounds
     ax.imshow(img, origin="lower", extent=(x0, x1, y0, y1), interpolation="nearest")
-    traj = np.asarray(record.trajectory)
+    traj = np.asarray(record.trajectory)[: snap.step + 2]
     ax.plot(traj[:, 0], traj[:, 1], "-", color=_TRUE, lw=1.0)
+    if snap.path is not None:
+        ax.plot(snap.path[:, 0], snap.path[:, 1], "-", color="magenta", lw=1.2, label="plan")
+    for pose, colour in ((snap.true, _TRUE), (snap.estimate, _ESTIMATE)):
+        if pose is not None:
+            ax.plot(*pose[:2], "o", color=colour, ms=5)
+            ax.arrow(*pose[:2], *(0.4 * np.array([np.cos(pose[2]), np.sin(pose[2])])), head_width=0.1,
+                     color=colour)  # fmt: skip
     ax.plot(*record.goal, "*", color=_GOAL, ms=10)
     (gx0, gy0), (gx1, gy1) = env.unwrapped.ground_truth.spec.bounds
     ax.set_xlim(gx0, gx1)
     ax.set_ylim(gy0, gy1)
-    ax.set_title("fused map at the end (red occupied, white free, grey unknown)", fontsize=8)
+    ax.set_title(title, fontsize=8)
     ax.set_xlabel("x (m)")
     ax.set_aspect("equal")
 
@@ -110,9 +168,12 @@ def _error_panel(ax: Any, record: EpisodeRecord, success_distance: float) -> Non
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
 
 
-def episode_figure(env: gym.Env, record: EpisodeRecord) -> Figure:
-    """The picture of one finished episode in ``env`` (module docstring); agents without a pose
-    estimate get the trajectory panel only."""
+def episode_figure(
+    env: gym.Env, record: EpisodeRecord, policy: Any = None, burst: MapSnapshot | None = None
+) -> Figure:
+    """The picture of one finished episode in ``env`` (module docstring): the fused map and the plan
+    of ``policy`` at the end and, with ``burst``, at the first collision burst; agents without a
+    pose estimate get the trajectory panel only."""
     success_distance = env.unwrapped.success_distance
     outcome = record.failure or "success"
     m = record.metrics
@@ -120,7 +181,8 @@ def episode_figure(env: gym.Env, record: EpisodeRecord) -> Figure:
         f"episode {record.index} (seed {record.seed}): {outcome}, SPL {m['spl']:.2f}, {m['steps']} steps, "
         f"{m['collisions']} collisions"
     )
-    if not record.frames:
+    end = MapSnapshot.of(env, policy, len(record.trajectory) - 2) if record.frames else None
+    if end is None:
         fig = Figure(figsize=(7.5, 6))
         _ground_truth_panel(fig.subplots(), env, record)
         fig.suptitle(title, fontsize=9)
@@ -130,22 +192,35 @@ def episode_figure(env: gym.Env, record: EpisodeRecord) -> Figure:
     title += f"; lost {lost:.0%} of frames, mean pose error " + (
         "none" if error is None else f"{error:.2f} m"
     )
+    if m.get("map_precision") is not None or m.get("map_recall") is not None:
+        title += "\nmap precision {} / recall {}, {} phantom cells on the true path".format(
+            *(f"{m.get(k):.2f}" if m.get(k) is not None else "n/a" for k in ("map_precision", "map_recall")),
+            m.get("path_phantom_cells"),
+        )
     (x0, y0), (x1, y1) = env.unwrapped.ground_truth.spec.bounds
-    maps_height = 5.0 * (y1 - y0) / (x1 - x0) + 0.8  # two maps side by side on a 13-inch-wide page
-    fig = Figure(figsize=(13, maps_height + 3.0))
-    grid = fig.add_gridspec(2, 2, height_ratios=(maps_height, 2.6))
+    n_maps = 2 if burst is None else 3
+    maps_height = (13.0 / n_maps) * (y1 - y0) / (x1 - x0) + 0.8
+    fig = Figure(figsize=(13 if burst is None else 18, maps_height + 3.0))
+    grid = fig.add_gridspec(2, n_maps, height_ratios=(maps_height, 2.6))
     _ground_truth_panel(fig.add_subplot(grid[0, 0]), env, record)
-    _fused_map_panel(fig.add_subplot(grid[0, 1]), env, record)
+    legend = "black occupied, red phantom, blue missed, white free, grey unknown; magenta plan"
+    if burst is not None:
+        _map_panel(fig.add_subplot(grid[0, 1]), env, record, burst,
+                   f"fused map + plan at the collision burst (step {burst.step})")  # fmt: skip
+    _map_panel(fig.add_subplot(grid[0, n_maps - 1]), env, record, end,
+               f"fused map + plan at the end ({outcome})\n{legend}")  # fmt: skip
     _error_panel(fig.add_subplot(grid[1, :]), record, success_distance)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     return fig
 
 
-def episode_png(env: gym.Env, record: EpisodeRecord) -> bytes:
+def episode_png(
+    env: gym.Env, record: EpisodeRecord, policy: Any = None, burst: MapSnapshot | None = None
+) -> bytes:
     """:func:`episode_figure` as PNG bytes (drawn where the episode ran; written by the caller)."""
     buffer = io.BytesIO()
-    episode_figure(env, record).savefig(buffer, format="png", dpi=90, bbox_inches="tight")
+    episode_figure(env, record, policy, burst).savefig(buffer, format="png", dpi=90, bbox_inches="tight")
     return buffer.getvalue()
 
 

@@ -380,3 +380,67 @@ def test_a_goal_jittering_by_float32_rounding_does_not_replan_every_step():
     assert agent.replans == 1
     agent.act(robot.pose, occ, spec, goal + (0.0, 0.2))  # a goal that moved
     assert agent.replans == 2
+
+
+def test_a_contact_the_map_sees_free_is_reopened():
+    """A bump marks contacts straight ahead, closing the direct way; once the map shows their
+    cells free on two decisions the plan goes straight through again (the contacts used to stay
+    until the robot's body covered them: detours kept after a phantom cleared)."""
+    occ, spec = room(with_wall=False)
+    agent = AStarAgent(robot_radius=RADIUS, reopen_after=1)
+    pose, goal = (1.0, 1.0, np.pi / 2), (1.0, 4.0)
+    assert agent.act(pose, occ, spec, goal) == FORWARD
+    agent.act(pose, occ, spec, goal, bumped=True)  # blocked: contacts ahead
+    assert len(agent.blocked_points) >= 1
+    ahead = np.asarray(agent.blocked_points)
+    assert np.abs(ahead[:, 0] - 1.0).min() < 0.05 and np.abs(agent.path[1:-1, 0] - 1.0).min() > 0.1
+    seen_free = np.ones(spec.shape, bool)
+    agent.act(pose, occ, spec, goal, bumped=False, free=seen_free)
+    assert len(agent.blocked_points) >= 1  # one frame is not enough
+    agent.act(pose, occ, spec, goal, bumped=False, free=seen_free)
+    assert agent.blocked_points == []
+    assert np.abs(agent.path[:, 0] - 1.0).max() < 0.05  # straight ahead again
+    fresh = AStarAgent(robot_radius=RADIUS)  # by default only contacts 50 decisions old
+    fresh.act(pose, occ, spec, goal)
+    fresh.act(pose, occ, spec, goal, bumped=True)
+    for _ in range(3):
+        fresh.act(pose, occ, spec, goal, bumped=False, free=seen_free)
+    assert len(fresh.blocked_points) >= 1
+
+
+@pytest.mark.parametrize(("sigma", "stops"), [(0.0, True), (0.05, True), (0.15, False), (0.4, False)])
+def test_the_stop_rule_weighs_the_estimate_uncertainty(sigma: float, stops: bool):
+    """0.3 m from the goal by the estimate: stop only if 0.3 + 1.64 sigma is within the 0.5 m
+    success radius; otherwise go on toward the goal (or turn for a better fix at its end)."""
+    occ, spec = room(with_wall=False)
+    agent = AStarAgent(robot_radius=RADIUS)
+    action = agent.act((1.0, 3.7, np.pi / 2), occ, spec, (1.0, 4.0), position_sigma=sigma)
+    assert (action == STOP) == stops
+    if not stops:
+        assert action == FORWARD  # closer to the goal, not a stop 0.3 m (+ error) away
+    at_goal = AStarAgent(robot_radius=RADIUS)
+    for _ in range(at_goal.turns_per_circle):  # at the goal and too unsure: turns, then gives up
+        action = at_goal.act((1.0, 4.0, 0.0), occ, spec, (1.0, 4.0), position_sigma=0.4)
+        assert action == TURN_LEFT
+    assert at_goal.act((1.0, 4.0, 0.0), occ, spec, (1.0, 4.0), position_sigma=0.4) == STOP
+
+
+def test_a_burst_of_bumps_makes_it_spin_once_in_place():
+    """Stuck in front of what it cannot see: every forward step is blocked. After 3 bumps within
+    the recovery window it turns once in full in place, then plans again."""
+    occ, spec = room(with_wall=False)
+    agent = AStarAgent(robot_radius=RADIUS)
+    pose, goal = (1.0, 1.0, np.pi / 2), (1.0, 4.0)
+    action, bumps = None, 0
+    for _ in range(2 * agent.recovery_window):
+        bumped = action == FORWARD
+        bumps += bumped
+        action = agent.act(pose, occ, spec, goal, bumped=bumped)
+        if agent.recoveries:
+            break
+        if action in (TURN_LEFT, TURN_RIGHT):
+            pose = (pose[0], pose[1], pose[2] + (1 if action == TURN_LEFT else -1) * np.radians(15.0))
+    assert agent.recoveries == 1 and bumps == agent.recovery_bumps and action == TURN_LEFT
+    spin = [agent.act(pose, occ, spec, goal, bumped=False) for _ in range(agent.turns_per_circle - 1)]
+    assert spin == [TURN_LEFT] * (agent.turns_per_circle - 1)
+    assert agent.path is None  # a fresh plan at the next decision

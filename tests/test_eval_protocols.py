@@ -230,6 +230,8 @@ def test_perception_report_and_scale_ablation(build: Path, tmp_path: Path) -> No
     assert (tmp_path / "scale" / "points.png").is_file()
     # Exact poses and depth: centimetre-level Acc/Comp with the ground-anchored scale ...
     assert metric[False]["acc_m"] < 0.03 and metric[False]["comp_m"] < 0.05
+    # exact depth: the fused map's occupied cells match the true visible obstacles
+    assert metric[False]["map_precision"] > 0.9 and metric[False]["map_recall"] > 0.8, metric[False]
     # ... and far worse at the backbone's unknown scale.
     assert metric[True]["acc_m"] > 3 * metric[False]["acc_m"]
 

@@ -178,6 +178,10 @@ def test_summary_aggregates_and_counts_failures():
         "mean_tracked_fraction",
         "mean_relocalized_fraction",
         "mean_gross_pose_fraction",
+        "mean_map_precision",
+        "mean_map_recall",
+        "mean_map_iou",
+        "mean_path_phantom_cells",
         "failures",
     ]
 

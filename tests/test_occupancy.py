@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from vgpnav_env.grid import GridSpec
-from vgpnav_env.perception.occupancy import FREE, OCCUPIED, UNKNOWN, LogOddsMap, classify_points
+from vgpnav_env.perception.occupancy import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    LogOddsMap,
+    OccupancyConfig,
+    classify_points,
+)
 
 SPEC = GridSpec((-1.0, -1.0), 0.05, (80, 80))  # x, y in [-1, 3)
 CAM_H = 1.2
@@ -131,3 +138,77 @@ def test_a_felt_contact_marks_a_segment_across_the_heading(yaw: float) -> None:
         crop = m.egocentric_crop(x, 1.0, yaw, size_cells=21, resolution=0.1)
         assert (crop[10 - 3 : 10 - 1, 9:12] == OCCUPIED).any()  # 0.2-0.3 m ahead
         assert (crop[:6] != OCCUPIED).all() and (crop[9:] != OCCUPIED).all()
+
+
+def _fuse(m: LogOddsMap, points, camera_xy, config: OccupancyConfig | None = None) -> None:
+    """One frame through the perceiver's fusion options (camera 1.2 m above the ground at z = 0)."""
+    config = config or OccupancyConfig()
+    m.update(
+        np.asarray(points, float), 0.0, 1.2, camera_xy=camera_xy,
+        clear_height=config.clear_height, min_cell_points=config.min_cell_points,
+        max_obstacle_range=config.max_obstacle_range, protect_free=config.protect_free,
+    )  # fmt: skip
+
+
+def _cell_points(xy, z, n: int = 4) -> np.ndarray:
+    """``n`` points at height ``z`` spread inside the 0.05 m cell whose centre is ``xy``."""
+    offsets = np.linspace(-0.015, 0.015, n)
+    return np.array([[xy[0] + o, xy[1] - o, z] for o in offsets])
+
+
+def _floor(x0: float, x1: float, y: float) -> np.ndarray:
+    xs = np.arange(x0, x1, 0.01)
+    return np.stack([xs, np.full_like(xs, y), np.zeros_like(xs)], axis=1)
+
+
+def test_a_phantom_seen_free_from_two_later_frames_is_cleared() -> None:
+    m = LogOddsMap(SPEC)
+    phantom = (1.525, 1.025)  # a cell centre
+    cell = tuple(SPEC.world_to_cell(np.array(phantom)))
+    _fuse(m, _cell_points(phantom, 0.3), camera_xy=(0.3, 1.0))  # noisy depth: an obstacle point cluster
+    assert m.occupied()[cell]
+    for camera_x in (0.2, 0.5):  # two later frames see the floor there and beyond it
+        _fuse(m, _floor(1.3, 2.2, 1.025), camera_xy=(camera_x, 1.0))
+    assert not m.occupied()[cell] and m.logodds[cell] < 0.62
+
+
+@pytest.mark.parametrize("l_occ", [0.85, 2.0, 4.0])
+def test_a_doorway_seen_open_is_not_closed_by_one_frame(l_occ: float) -> None:
+    config = OccupancyConfig(l_occ=l_occ)
+    m = LogOddsMap(SPEC, l_occ=l_occ)
+    door = [(1.525, y) for y in (0.925, 0.975, 1.025, 1.075)]  # a 0.2 m doorway across y
+    _fuse(m, np.concatenate([_floor(1.4, 1.7, y) for _, y in door]), (0.5, 1.0), config)  # seen open
+    cells = SPEC.world_to_cell(np.array(door))
+    assert (m.logodds[cells[:, 0], cells[:, 1]] < 0).all()
+    # one frame's points fill the doorway (e.g. a wrong depth): it stays open
+    _fuse(m, np.concatenate([_cell_points(d, 0.8) for d in door]), (0.5, 1.0), config)
+    assert not m.occupied()[cells[:, 0], cells[:, 1]].any()
+    # the old fusion (no protection) closes it when one frame's evidence outweighs the free one
+    if l_occ > 0.4 + 0.62:
+        plain = LogOddsMap(SPEC, l_occ=l_occ)
+        plain.update(np.concatenate([_floor(1.4, 1.7, y) for _, y in door]), 0.0, 1.2, camera_xy=(0.5, 1.0))
+        plain.update(np.concatenate([_cell_points(d, 0.8) for d in door]), 0.0, 1.2, camera_xy=(0.5, 1.0))
+        assert plain.occupied()[cells[:, 0], cells[:, 1]].all()
+    # a second frame does close it (a door that was closed meanwhile)
+    _fuse(m, np.concatenate([_cell_points(d, 0.8) for d in door]), (0.5, 1.0), config)
+    assert m.occupied()[cells[:, 0], cells[:, 1]].all()
+
+
+def test_sight_lines_clear_only_where_they_run_low() -> None:
+    """A 0.45 m table 1 m from the camera, the floor seen beyond it 2.5-3.4 m away: the sight lines
+    pass over the table 0.7 m high, which proves nothing about the table with ``clear_height``
+    0.3 m; near their floor ends they run under it and clear those cells. Thin evidence (one point)
+    marks no obstacle."""
+    low = OccupancyConfig(clear_height=0.3)
+    m = LogOddsMap(SPEC)
+    table = (0.525, 1.025)
+    cell = tuple(SPEC.world_to_cell(np.array(table)))
+    _fuse(m, _cell_points(table, 0.45), (-0.5, 1.0), low)
+    for _ in range(5):
+        _fuse(m, _floor(2.0, 2.9, 1.025), (-0.5, 1.0), low)
+    assert m.occupied()[cell]
+    ends = SPEC.cell_to_world(np.argwhere(m.logodds < 0))[:, 0]
+    assert ends.min() >= -0.5 + 0.75 * 2.5 - 0.05  # the lines drop under 0.3 m after 3/4 of the way
+    lone = LogOddsMap(SPEC)
+    _fuse(lone, [[2.0, 1.0, 0.5]], camera_xy=(0.0, 1.0))  # one point in its cell
+    assert not lone.occupied().any()

@@ -77,12 +77,13 @@ def test_database_cache_and_prior(database: Database, build: Path, monkeypatch: 
     assert again.z_ground == database.z_ground
     np.testing.assert_array_equal(again.index.database, database.index.database)
     np.testing.assert_array_equal(again.prior.logodds, database.prior.logodds)
-    # A perceiver's map starts from the prior and fuses with its config's log-odds settings.
-    occupancy = OccupancyConfig(l_free=-0.2, l_occ=2.0, clamp=(-1.5, 1.5))
+    # A perceiver's map starts from the prior times its weight and fuses with its config's
+    # log-odds settings.
+    occupancy = OccupancyConfig(l_free=-0.2, l_occ=2.0, clamp=(-1.5, 1.5), prior_weight=0.5)
     perceiver = Perceiver(database, "simulated", config=PerceptionConfig(occupancy=occupancy))
     m = perceiver.map
     assert (m.l_free, m.l_occ, m.clamp) == (-0.2, 2.0, (-1.5, 1.5))
-    np.testing.assert_array_equal(m.logodds, np.clip(database.prior.logodds, -1.5, 1.5))
+    np.testing.assert_allclose(m.logodds, np.clip(0.5 * database.prior.logodds, -1.5, 1.5))
 
 
 def test_preparation_on_one_thread_gives_the_same_database(

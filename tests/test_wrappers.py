@@ -64,9 +64,10 @@ def test_privileged_perception_gives_true_pose_goal_and_map(wrapped):
         assert wrapped.observation_space.contains(obs)
     assert info["localization_error_m"] < 0.05
     # The fused map against the scene's true obstacles (exact poses and depth). Measured (seed 2, 3
-    # steps): all 235 occupied cells within 0.05 m of a true obstacle; 93 % of the 2658 free cells
-    # off the true obstacles, the rest floor seen under tables and chairs (free for the camera, an
-    # obstacle in the true map's band up to the robot's height), at most 0.45 m in.
+    # steps): 118 occupied cells (235 before obstacle cells needed two points of a frame and
+    # sight lines cleared up to 0.8 m), within 0.05 m of a true obstacle; of the 3120 free cells
+    # most off the true obstacles, the rest floor seen under tables and chairs (free for the
+    # camera, an obstacle in the true map's band up to the robot's height).
     gt = wrapped.unwrapped.ground_truth
     fused = wrapped.get_wrapper_attr("fused_map")
     off_gt = ndimage.distance_transform_edt(~gt.obstacle) * gt.spec.resolution  # m to a true obstacle
@@ -77,7 +78,7 @@ def test_privileged_perception_gives_true_pose_goal_and_map(wrapped):
         return to[cells[:, 0], cells[:, 1]]
 
     occupied, free = distances(info["obstacles"], off_gt), distances(fused.free(), on_gt)
-    assert len(occupied) >= 150 and len(free) >= 1500, (len(occupied), len(free))
+    assert len(occupied) >= 100 and len(free) >= 1500, (len(occupied), len(free))
     assert np.mean(occupied <= 0.1) >= 0.95, np.percentile(occupied, [50, 90, 100])
     assert np.mean(free <= 0.15) >= 0.85 and free.max() < 0.6, np.percentile(free, [50, 90, 100])
 

@@ -99,10 +99,10 @@ def cell_of(spec: GridSpec, xy: ArrayLike, what: str = "point") -> tuple[int, in
     return int(cell[0]), int(cell[1])
 
 
-def _mcp(traversable: NDArray[np.bool_]):
+def _mcp(traversable: NDArray[np.bool_], cost: NDArray[np.float64] | None = None):
     from skimage.graph import MCP_Geometric
 
-    costs = np.where(traversable, 1.0, np.inf)
+    costs = np.where(traversable, 1.0 if cost is None else cost, np.inf)
     return MCP_Geometric(costs, fully_connected=True)
 
 
@@ -127,15 +127,32 @@ def line_of_sight(traversable: NDArray[np.bool_], spec: GridSpec, a_xy: ArrayLik
     return bool(np.all(inside) and np.all(traversable[cells[:, 0], cells[:, 1]]))
 
 
+def _segment_cost(cost: NDArray[np.float64], spec: GridSpec, a: NDArray, b: NDArray) -> float:
+    """The highest cell cost on the straight segment a -> b (world xy)."""
+    n = max(2, int(np.ceil(4.0 * np.linalg.norm(b - a) / spec.resolution)) + 1)
+    cells = spec.world_to_cell(a + np.linspace(0.0, 1.0, n)[:, None] * (b - a))
+    return float(cost[cells[:, 0], cells[:, 1]].max())
+
+
 def _shortcut(
-    traversable: NDArray[np.bool_], spec: GridSpec, path: NDArray[np.float64]
+    traversable: NDArray[np.bool_],
+    spec: GridSpec,
+    path: NDArray[np.float64],
+    cost: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
-    """Greedy string pulling: from each kept vertex, jump to the farthest vertex still in sight."""
+    """Greedy string pulling: from each kept vertex, jump to the farthest vertex still in sight
+    (with ``cost``: through no cell costlier than the costliest cell of the path it replaces, so a
+    shortcut never brings the path nearer to obstacles than the planned path went)."""
+    if cost is not None:
+        on_path = cost[tuple(spec.world_to_cell(path).T)]
     kept = [0]
     i = 0
     while i < len(path) - 1:
         j = i + 1
         while j + 1 < len(path) and line_of_sight(traversable, spec, path[i], path[j + 1]):
+            if cost is not None:
+                if _segment_cost(cost, spec, path[i], path[j + 1]) > on_path[i : j + 2].max():
+                    break
             j += 1
         kept.append(j)
         i = j
@@ -143,28 +160,41 @@ def _shortcut(
 
 
 def shortest_path(
-    traversable: ArrayLike, spec: GridSpec, start_xy: ArrayLike, goal_xy: ArrayLike, *, smooth: bool = True
+    traversable: ArrayLike,
+    spec: GridSpec,
+    start_xy: ArrayLike,
+    goal_xy: ArrayLike,
+    *,
+    smooth: bool = True,
+    cost: ArrayLike | None = None,
 ) -> NDArray[np.float64] | None:
     """Shortest 8-connected path (N, 2) of world xy from ``start_xy`` to ``goal_xy`` on a boolean grid.
 
     The path starts at ``start_xy`` and ends at ``goal_xy`` exactly, through cell centres in
     between; ``smooth`` removes vertices while the straight segments stay on traversable cells
-    (so straight corridors give straight lines, not octile zig-zags). None if the start or goal
-    cell is not traversable or no path exists; ValueError if either lies off the grid.
+    (so straight corridors give straight lines, not octile zig-zags). ``cost``: an optional
+    per-cell cost (>= 1, ``spec.shape``) multiplying the length of the steps through the cell (a
+    costmap: the path is the cheapest, not the shortest), which the smoothing respects too. None if
+    the start or goal cell is not traversable or no path exists; ValueError if either lies off the
+    grid.
     """
     traversable = _check_mask(traversable, spec, "traversable")
     start = cell_of(spec, start_xy, "start")
     goal = cell_of(spec, goal_xy, "goal")
     if not (traversable[start] and traversable[goal]):
         return None
-    mcp = _mcp(traversable)
+    if cost is not None:
+        cost = np.asarray(cost, float)
+        if cost.shape != spec.shape or np.any(cost[traversable] < 1.0):
+            raise ValueError(f"cost must be >= 1 on traversable cells with shape {spec.shape}")
+    mcp = _mcp(traversable, cost)
     cumulative, _ = mcp.find_costs([start], [goal])
     if not np.isfinite(cumulative[goal]):
         return None
     cells = np.asarray(mcp.traceback(goal))
     path = spec.cell_to_world(cells if len(cells) > 1 else np.repeat(cells, 2, axis=0))
     path[0], path[-1] = np.asarray(start_xy, float), np.asarray(goal_xy, float)
-    return _shortcut(traversable, spec, path) if smooth else path
+    return _shortcut(traversable, spec, path, cost) if smooth else path
 
 
 def path_length(path: ArrayLike) -> float:

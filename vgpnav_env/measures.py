@@ -13,6 +13,9 @@ Scopes (what a measure reads):
   env puts these metrics into ``info`` under their uuids.
 - ``"estimate"``: an :class:`EstimateState`, the pose estimate an agent observes beside the true
   pose; the VGP-Nav wrapper puts these metrics into its ``info``.
+- ``"map"``: a :class:`~vgpnav_env.map_measures.MapState`, the fused obstacle map against the true
+  occupancy of the robot's layout over the cells it observed (:mod:`vgpnav_env.map_measures`); the
+  perception wrappers put these metrics into their ``info``.
 
 How a measure appears in evaluations (class attributes): ``record``, its field in an episode
 record (None: not recorded); ``per_frame``, False: the record holds the final value, True: the
@@ -36,8 +39,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vgpnav_env.envs.episodes import Episode
+from vgpnav_env.map_measures import MapState
 
-SCOPES = ("env", "estimate")
+SCOPES = ("env", "estimate", "map")
 
 
 @dataclass(frozen=True)
@@ -443,3 +447,64 @@ class GrossPoseError(Measure):
     @classmethod
     def episode_value(cls, values: Sequence[Any]) -> Any:
         return _mean_over_estimates(values)
+
+
+# -- map measures ---------------------------------------------------------------------------
+
+
+@register_measure
+class MapPrecision(Measure):
+    """Occupied precision of the fused map over the observed cells (:mod:`vgpnav_env.map_measures`;
+    None while no occupied cell was observed); episodes report the value at their end."""
+
+    uuid = "map_precision"
+    scope = "map"
+    record = "map_precision"
+    summary = "mean_map_precision"
+    column = "map prec."
+
+    def update_metric(self, state: MapState, measures: Measurements) -> None:
+        self.metric = state.score.precision
+
+
+@register_measure
+class MapRecall(Measure):
+    """Occupied recall of the fused map over the observed cells (None while no true obstacle was
+    observed); episodes report the value at their end."""
+
+    uuid = "map_recall"
+    scope = "map"
+    record = "map_recall"
+    summary = "mean_map_recall"
+    column = "map recall"
+
+    def update_metric(self, state: MapState, measures: Measurements) -> None:
+        self.metric = state.score.recall
+
+
+@register_measure
+class MapIoU(Measure):
+    """Occupied IoU of the fused map over the observed cells (from precision and recall)."""
+
+    uuid = "map_iou"
+    scope = "map"
+    record = "map_iou"
+    summary = "mean_map_iou"
+
+    def update_metric(self, state: MapState, measures: Measurements) -> None:
+        self.metric = state.score.iou
+
+
+@register_measure
+class PathPhantoms(Measure):
+    """Phantom cells of the fused map (occupied, no true obstacle near) within the robot radius of
+    the true shortest path; episodes report the count at their end."""
+
+    uuid = "path_phantoms"
+    scope = "map"
+    record = "path_phantom_cells"
+    summary = "mean_path_phantom_cells"
+    column = "path phantoms"
+
+    def update_metric(self, state: MapState, measures: Measurements) -> None:
+        self.metric = state.path_phantoms

@@ -50,8 +50,11 @@ occupied cells of the fused map) with ``map_spec`` (its ``GridSpec``), and the m
 ``"estimate"`` measures of :mod:`vgpnav_env.measures`: ``localization_error_m`` (horizontal error
 of the observed ``pose``), ``localized``, ``tracked``, ``relocalized``, ``gross_pose_error`` and
 ``no_estimate``; before the pose state's first estimate (``no_estimate`` True) the pose-error
-entries are left out, not nan (:meth:`~vgpnav_env.measures.Measurements.defined_metrics`). Timings
-stay out of it and nothing is nan, so that ``info`` of identical runs compares equal.
+entries are left out, not nan (:meth:`~vgpnav_env.measures.Measurements.defined_metrics`); then
+the ``"map"`` measures of the fused map against the true occupancy over the cells the camera saw
+(:mod:`vgpnav_env.map_measures`, kept by ``map_tracker``): ``map_precision``, ``map_recall``,
+``map_iou`` (None while undefined) and ``path_phantoms``. Timings stay out of it and nothing is
+nan, so that ``info`` of identical runs compares equal.
 
 On ``reset`` the robot stands still: the first view plus ``len(init_yaw_jitter_deg) - 1`` views
 rendered with tiny yaw offsets (``env.render_view``) initialise the ground anchor (paper: ground
@@ -77,6 +80,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import wrap_angle
+from vgpnav_env.map_measures import MapTracker
 from vgpnav_env.measures import EstimateState, Measurements, defined
 from vgpnav_env.perception.backbones import Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
@@ -264,6 +268,8 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.pose_state = OdometryState(lo, hi, gate=gate, **motion)
         self.last_result: PerceptionResult | None = None
         self.measurements = Measurements("estimate")
+        self.map_measurements = Measurements("map")
+        self.map_tracker = MapTracker(env)
 
     @property
     def fused_map(self) -> LogOddsMap:
@@ -353,6 +359,10 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.pose_state.has_estimate,
         )
         (self.measurements.reset if first else self.measurements.update)(state)
+        if first:
+            self.map_tracker.start(occupancy.spec, info)
+        map_state = self.map_tracker.observe(obstacles, info)
+        (self.map_measurements.reset if first else self.map_measurements.update)(map_state)
         info = dict(info)
         info.update(
             perception=defined(
@@ -374,6 +384,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             obstacles=obstacles,
             map_spec=occupancy.spec,
             **self.measurements.defined_metrics(),
+            **self.map_measurements.metrics(),
         )
         self.env.unwrapped.set_overlay(
             estimated_pose=estimate,

@@ -350,11 +350,12 @@ class Database:
 
     def new_map(self, config: OccupancyConfig | None = None) -> LogOddsMap:
         """A fresh log-odds map over :attr:`map_spec` fusing with ``config``'s ``l_free``, ``l_occ``
-        and ``clamp``: starting from the prior's log-odds, or empty."""
+        and ``clamp``: starting from the prior's log-odds times ``config.prior_weight``, or empty."""
         c = config or OccupancyConfig()
         if self.prior is None:
             return LogOddsMap(self.map_spec, c.l_free, c.l_occ, c.clamp)
-        return LogOddsMap.from_prior(self.map_spec, self.prior.logodds, c.l_free, c.l_occ, c.clamp)
+        prior = self.prior.logodds * c.prior_weight
+        return LogOddsMap.from_prior(self.map_spec, prior, c.l_free, c.l_occ, c.clamp)
 
     @classmethod
     def open(

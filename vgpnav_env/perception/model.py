@@ -59,6 +59,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from vgpnav_env.geometry import PinholeCamera, wrap_angle
 from vgpnav_env.grid import GridSpec
+from vgpnav_env.map_measures import MapTracker
 from vgpnav_env.measures import EstimateState, Measurements
 from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
 from vgpnav_env.perception.state import EKFConfig
@@ -441,6 +442,8 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.unseen: NDArray[np.bool_] | None = None  # cells whose obstacles depth never shows
         self.has_estimate = True
         self.measurements = Measurements("estimate")
+        self.map_measurements = Measurements("map")
+        self.map_tracker = MapTracker(env)
         self.pose_state = ModelPoseState(self.model.fix_covariance())
 
     def _sampled_rays(self, camera: PinholeCamera) -> NDArray[np.float64]:
@@ -552,12 +555,17 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )
         state = EstimateState(new_obs["pose"], localized, self._true, has_estimate=self.has_estimate)
         (self.measurements.reset if action is None else self.measurements.update)(state)
+        if action is None:
+            self.map_tracker.start(self.fused_map.spec, info)
+        map_state = self.map_tracker.observe(self.fused_map.occupied(), {**info, "depth": depth})
+        (self.map_measurements.reset if action is None else self.map_measurements.update)(map_state)
         info = dict(info)
         info.update(
             perception={"status": "localized" if localized else "lost", "mode": "model"},
             estimated_pose=self.estimate.copy(),
             map_spec=self.fused_map.spec,
             **self.measurements.metrics(),
+            **self.map_measurements.metrics(),
         )
         if self.env.unwrapped.render_mode is not None:
             self.env.unwrapped.set_overlay(estimated_pose=self.estimate, localized=localized)

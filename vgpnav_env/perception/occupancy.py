@@ -39,6 +39,16 @@ class OccupancyConfig:
     :class:`LogOddsMap` adds ``l_occ`` / ``l_free`` per frame and clamps to ``clamp`` (the
     defaults of every map; the perceiver's maps take them from its config).
 
+    What a frame's points may say (:meth:`LogOddsMap.update`): ``clear_height``, free evidence
+    along each point's sight line from the camera where the line runs at most that high above the
+    ground (None: 2D rays to the obstacle cells); obstacle cells need ``min_cell_points`` points of
+    the frame and lie within ``max_obstacle_range`` m of the camera (far depth is the noisiest);
+    ``protect_free``: one frame cannot turn a cell seen free into an obstacle. ``prior_weight``
+    scales the database prior's log-odds (already a weak belief, clamped to
+    :attr:`~vgpnav_env.perception.database.DatabaseConfig.prior_clamp`: free evidence overrides
+    it within a few frames where the layout changed; at 0.5 the walls' weaker prior cells fell
+    under the occupied threshold and a robot starting beside a wall bumped into it).
+
     ``min_confidence`` 0.2 (was 0.3), with the plane sweep's snapped planar inliers
     (:class:`~vgpnav_env.perception.backbones.planar_fill.PlanarFillConfig`): on the right poses of
     the default perception runs' frames (classical, 320x240, k = 10; sweep re-run offline at the
@@ -54,6 +64,11 @@ class OccupancyConfig:
     l_free: float = -0.4
     l_occ: float = 0.85
     clamp: tuple[float, float] = (-4.0, 4.0)
+    clear_height: float | None = 0.8
+    min_cell_points: int = 2
+    max_obstacle_range: float | None = None
+    protect_free: bool = True
+    prior_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if self.point_stride < 1:
@@ -62,6 +77,8 @@ class OccupancyConfig:
             raise ValueError("free_tol, obstacle_min and max_depth must be positive metres")
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if self.min_cell_points < 1 or self.prior_weight < 0:
+            raise ValueError("min_cell_points must be >= 1 and prior_weight >= 0")
 
 
 def classify_points(
@@ -81,11 +98,52 @@ def classify_points(
     )
 
 
-def _unique_cells(spec: GridSpec, xy: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Flat indices of the distinct in-grid cells hit by world points (N, 2)."""
+def _unique_cells(spec: GridSpec, xy: NDArray[np.float64], min_count: int = 1) -> NDArray[np.int64]:
+    """Flat indices of the distinct in-grid cells hit by at least ``min_count`` world points (N, 2)."""
     cells = spec.world_to_cell(xy)
     cells = cells[spec.contains(cells)]
-    return np.unique(cells[:, 0] * spec.shape[1] + cells[:, 1])
+    flat, counts = np.unique(cells[:, 0] * spec.shape[1] + cells[:, 1], return_counts=True)
+    return flat[counts >= min_count]
+
+
+def _sight_line_cells(
+    spec: GridSpec,
+    camera_xy: NDArray[np.float64],
+    camera_z: float,
+    points: NDArray[np.float64],
+    height: float,
+) -> NDArray[np.int64]:
+    """Flat indices of the cells under the sight lines from a camera (``camera_xy``, ``camera_z``
+    m above the ground) to points (N, 3: x, y and height above the ground) where a line runs at
+    most ``height`` m above the ground, the points' own cells excluded: what the line passing
+    there proves free of obstacles that tall (it reached the point). One line per distinct cell
+    of the points (its lowest point)."""
+    W = spec.shape[1]
+    cells = spec.world_to_cell(points[:, :2])
+    inside = spec.contains(cells)
+    flat, z = cells[inside, 0] * W + cells[inside, 1], points[inside, 2]
+    if len(flat) == 0:
+        return np.zeros(0, np.int64)
+    order = np.lexsort((z, flat))
+    first = np.r_[True, flat[order][1:] != flat[order][:-1]]
+    flat, z = flat[order][first], z[order][first]
+    low = z < min(height, camera_z)
+    if not low.any():
+        return np.zeros(0, np.int64)
+    flat, z = flat[low], z[low]
+    start = np.asarray(camera_xy, float)
+    ends = spec.cell_to_world(np.stack([flat // W, flat % W], axis=1))
+    t0 = np.clip((camera_z - height) / (camera_z - z), 0.0, 1.0)  # where the line drops to ``height``
+    length = np.linalg.norm(ends - start, axis=1) / spec.resolution
+    n = np.ceil(length * (1.0 - t0)).astype(int) + 1
+    steps = int(n.max())
+    u = np.arange(steps)[None, :] / np.maximum(n - 1, 1)[:, None]  # (lines, steps) in [0, 1]
+    t = t0[:, None] + u * (1.0 - t0)[:, None]
+    keep = (np.arange(steps)[None, :] < n[:, None]) & (t < 1.0)
+    xy = start + t[..., None] * (ends - start)[:, None, :]
+    on = spec.world_to_cell(xy[keep])
+    on = on[spec.contains(on)]
+    return np.setdiff1d(np.unique(on[:, 0] * W + on[:, 1]), flat)
 
 
 def _farthest_per_direction(start: NDArray[np.int64], ends: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -173,14 +231,36 @@ class LogOddsMap:
         camera_xy: ArrayLike | None = None,
         free_tol: float = FLOOR_TOLERANCE,
         obstacle_min: float = OBSTACLE_MIN,
+        *,
+        clear_height: float | None = None,
+        min_cell_points: int = 1,
+        max_obstacle_range: float | None = None,
+        protect_free: bool = False,
     ) -> PointClasses:
-        """Fuse one frame of metric world points (N, 3); returns their classes."""
+        """Fuse one frame of metric world points (N, 3); returns their classes.
+
+        The keyword options (defaults: the plain fusion of the class docstring) are
+        :class:`OccupancyConfig`'s: with ``clear_height`` and ``camera_xy`` the free evidence runs
+        along every point's sight line from the camera (at ``camera_height`` above the ground) where
+        it is at most ``clear_height`` m high (:func:`_sight_line_cells`) instead of the 2D rays to
+        obstacle cells; obstacle cells need ``min_cell_points`` points and, with ``camera_xy``, to
+        lie within ``max_obstacle_range`` m of it; ``protect_free``: a cell below 0 (seen free)
+        rises to 0 at most in this frame.
+        """
         P = np.asarray(points_w, float).reshape(-1, 3)
         classes = classify_points(P, z_ground, camera_height, free_tol, obstacle_min)
         W = self.spec.shape[1]
-        occ = _unique_cells(self.spec, P[classes.obstacle, :2])
+        obstacle = P[classes.obstacle]
+        if camera_xy is not None and max_obstacle_range is not None:
+            near = np.linalg.norm(obstacle[:, :2] - np.asarray(camera_xy, float)[:2], axis=1)
+            obstacle = obstacle[near <= max_obstacle_range]
+        occ = _unique_cells(self.spec, obstacle[:, :2], min_cell_points)
         free = [_unique_cells(self.spec, P[classes.free, :2])]
-        if camera_xy is not None and len(occ):
+        if camera_xy is not None and clear_height is not None:
+            seen = P[classes.free | classes.obstacle] - [0.0, 0.0, z_ground]
+            seen[:, 2] = np.maximum(seen[:, 2], 0.0)
+            free.append(_sight_line_cells(self.spec, camera_xy, camera_height, seen, clear_height))
+        elif camera_xy is not None and len(occ):
             start = self.spec.world_to_cell(np.asarray(camera_xy, float)[:2])
             ends = _farthest_per_direction(start, np.stack([occ // W, occ % W], axis=1))
             ray = _ray_cells(start, ends)
@@ -188,7 +268,11 @@ class LogOddsMap:
             free.append(np.unique(ray[:, 0] * W + ray[:, 1]))
         free_cells = np.setdiff1d(np.concatenate(free), occ, assume_unique=False)
         flat = self.logodds.reshape(-1)
-        flat[occ] += self.l_occ
+        if protect_free:
+            before = flat[occ]
+            flat[occ] = np.where(before < 0.0, np.minimum(before + self.l_occ, 0.0), before + self.l_occ)
+        else:
+            flat[occ] += self.l_occ
         flat[free_cells] += self.l_free
         np.clip(self.logodds, *self.clamp, out=self.logodds)
         return classes

@@ -476,6 +476,10 @@ class Perceiver:
             camera_xy=result.T_wc[:2, 3],
             free_tol=occ.free_tol,
             obstacle_min=occ.obstacle_min,
+            clear_height=occ.clear_height,
+            min_cell_points=occ.min_cell_points,
+            max_obstacle_range=occ.max_obstacle_range,
+            protect_free=occ.protect_free,
         )
 
     def _attempt(
