@@ -274,7 +274,7 @@ def test_a_contact_under_the_footprint_edge_still_blocks_the_way_ahead():
 
 
 def test_contacts_where_the_robot_stood_do_not_close_the_way_it_came():
-    """Home seed 4 (A* + classical, f632d22): in a pocket north of its start the robot bumped four
+    """Home seed 4 (A* + classical): in a pocket north of its start the robot bumped four
     times; the side marks of an earlier bump lay where its body then stood (0.108 m from its centre,
     kept by a half-radius rule), the marks closed a ring around it, and for 440 steps it alternated
     between the two headings the last bump's marks alone left open. Replayed from that episode's
@@ -327,7 +327,7 @@ def test_bumps_in_every_direction_leave_the_ways_between_their_headings_open():
     """Bumped heading north, west, south and east (a hull the map does not hold on every side):
     the marks of all four close every way even at the tight inflation, and the plan used to fall
     back to the last bump's marks alone, which leave the other bumped headings open: home seeds 14
-    and 17 (A* + classical, f632d22) alternated between two bumped headings for 300 steps. The
+    and 17 (A* + classical) alternated between two bumped headings for 300 steps. The
     marks straight ahead of the bumps alone keep every bumped heading closed."""
     occ, spec = room(with_wall=False)
     agent = AStarAgent(robot_radius=RADIUS)
@@ -345,7 +345,7 @@ def test_bumps_in_every_direction_leave_the_ways_between_their_headings_open():
 
 
 def test_a_bump_marks_the_way_ahead_even_where_the_robot_stood_before():
-    """Home seed 4 (5325a7b + 8eac215): back at (9.3, 6.57) the robot bumped heading south on the
+    """Home seed 4 (A* + classical): back at (9.3, 6.57) the robot bumped heading south on the
     corner of a box its map did not hold; the point straight ahead lay where its body had stood 20
     steps earlier, so no mark closed that heading, the tight plan kept leading south past the side
     mark, and it pushed 30 times in a row. The straight-ahead mark is always kept."""
@@ -365,7 +365,7 @@ def test_a_bump_marks_the_way_ahead_even_where_the_robot_stood_before():
 
 
 def test_a_goal_jittering_by_float32_rounding_does_not_replan_every_step():
-    """Home seed 17 (A* + classical, b4e3a47): the goal rebuilt from the observation's float32
+    """Home seed 17 (A* + classical): the goal rebuilt from the observation's float32
     (distance, bearing) moved by micrometres on every turn, so the agent replanned on every step;
     standing in an obstacle's inflation with an exit to either side, the plans flipped between the
     two, and it turned left, right, left, ... for 180 steps. A goal within half a cell of the
