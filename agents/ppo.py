@@ -409,7 +409,10 @@ def train_ppo(
     if saved is None:
         (out / CONFIG_FILE).write_text(json.dumps(run_config, indent=2) + "\n")
     config = run_config["env"]
-    venv = make_vec(config, n_envs, seed, end_penalty=config["perception"] is not None)
+    train_env = config
+    if config["perception"] == "model":  # the policy never reads the map scores: skip their cost
+        train_env = {**config, "wrapper": {**(config.get("wrapper") or {}), "map_measures": False}}
+    venv = make_vec(train_env, n_envs, seed, end_penalty=config["perception"] is not None)
     ckpt = latest_checkpoint(out) if resume else None
     try:
         if ckpt is not None:

@@ -119,6 +119,25 @@ def test_same_seed_same_draws_and_space(model_env):
     assert any(not np.array_equal(x[0]["pose"], y[0]["pose"]) for x, y in zip(a, c, strict=False))
 
 
+def test_map_measures_off_changes_nothing_but_the_map_entries(model_env, walled_room):
+    """Training's ``map_measures=False``: the same draws and observations, no map scores in info."""
+    off = ModelObservation(
+        gym.make(ENV_ID, scene=walled_room, image_size=SIZE, render_rgb=False, max_steps=60),
+        map_measures=False,
+    )
+    keys = {"map_precision", "map_recall", "map_iou", "path_phantoms"}
+    try:
+        a, b = _rollout(model_env, 5, 30), _rollout(off, 5, 30)
+    finally:
+        off.close()
+    assert all(keys <= set(info) for _, info in a)
+    for (oa, ia), (ob, ib) in zip(a, b, strict=True):
+        assert not keys & set(ib)
+        for key in oa:
+            np.testing.assert_array_equal(oa[key], ob[key])
+        assert ia["collisions"] == ib["collisions"]
+
+
 def test_draws_in_the_env_follow_the_fit(walled_room):
     """Over 1500 steps: the lost rate per depth bin, the gross rate and the inlier error median are
     those of the fit (binomial tolerances ~3 sigma); lost frames carry the pose by odometry."""

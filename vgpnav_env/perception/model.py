@@ -383,7 +383,9 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     ``fit``: a fit file (default: the shipped one) or a :class:`PerceptionModel`; ``randomize``:
     the randomised episodes of the module docstring (training; needs a fit with ``prior_errors``
-    for the prior, draws the lost regime and the missing first estimate without).
+    for the prior, draws the lost regime and the missing first estimate without);
+    ``map_measures``: score the fused map in ``info`` every step (evaluation; about a third of this
+    wrapper's step time, so training turns it off and ``info`` has no map entries).
     """
 
     perception_mode = "model"
@@ -398,6 +400,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         point_stride: int = 4,
         prior: bool = True,
         randomize: bool = False,
+        map_measures: bool = True,
     ) -> None:
         from vgpnav_env.wrappers import navigation_space
 
@@ -409,6 +412,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             point_stride=point_stride,
             prior=prior,
             randomize=randomize,
+            map_measures=map_measures,
         )
         gym.Wrapper.__init__(self, env)
         base = env.unwrapped
@@ -443,7 +447,7 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.has_estimate = True
         self.measurements = Measurements("estimate")
         self.map_measurements = Measurements("map")
-        self.map_tracker = MapTracker(env)
+        self.map_tracker = MapTracker(env) if map_measures else None
         self.pose_state = ModelPoseState(self.model.fix_covariance())
 
     def _sampled_rays(self, camera: PinholeCamera) -> NDArray[np.float64]:
@@ -555,17 +559,18 @@ class ModelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )
         state = EstimateState(new_obs["pose"], localized, self._true, has_estimate=self.has_estimate)
         (self.measurements.reset if action is None else self.measurements.update)(state)
-        if action is None:
-            self.map_tracker.start(self.fused_map.spec, info)
-        map_state = self.map_tracker.observe(self.fused_map.occupied(), {**info, "depth": depth})
-        (self.map_measurements.reset if action is None else self.map_measurements.update)(map_state)
+        if self.map_tracker is not None:
+            if action is None:
+                self.map_tracker.start(self.fused_map.spec, info)
+            map_state = self.map_tracker.observe(self.fused_map.occupied(), {**info, "depth": depth})
+            (self.map_measurements.reset if action is None else self.map_measurements.update)(map_state)
         info = dict(info)
         info.update(
             perception={"status": "localized" if localized else "lost", "mode": "model"},
             estimated_pose=self.estimate.copy(),
             map_spec=self.fused_map.spec,
             **self.measurements.metrics(),
-            **self.map_measurements.metrics(),
+            **(self.map_measurements.metrics() if self.map_tracker is not None else {}),
         )
         if self.env.unwrapped.render_mode is not None:
             self.env.unwrapped.set_overlay(estimated_pose=self.estimate, localized=localized)
