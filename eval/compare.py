@@ -1,5 +1,8 @@
 """``vgpnav report DIR [DIR ...] --out OUT``: several evaluation runs side by side.
 
+``vgpnav report DIR [DIR ...] --leaderboard`` prints only the leaderboard rows of the ``vgpnav
+bench`` results files among them (the README's benchmark table is this output).
+
 Reads the ``report.json`` every ``vgpnav eval`` and ``vgpnav bench`` command writes and puts the
 runs next to each other (e.g. backbones, modes, scenes, agents): one Markdown table of the
 settings (one column per run), one of the metrics (every number at the top level of the reports,
@@ -148,16 +151,22 @@ def compare(directories: Sequence[Path], out: Path, clock: RunClock | None = Non
     return content
 
 
-def leaderboard_section(reports: Sequence[Mapping[str, Any]]) -> list[str]:
-    """A ``## Leaderboard`` section with one row per ``vgpnav bench`` results file among the
-    reports (none without one)."""
+def leaderboard_table(reports: Sequence[Mapping[str, Any]]) -> str | None:
+    """The Markdown leaderboard: one row per ``vgpnav bench`` results file among the reports, in
+    their order (None without one)."""
     from vgpnav_env.eval.bench import leaderboard_row
     from vgpnav_env.eval.records import SCHEMA
 
     rows = [leaderboard_row(dict(r)) for r in reports if r.get("schema") == SCHEMA]
     if not rows:
-        return []
-    return ["## Leaderboard\n\n" + markdown_table(rows[0][0], [row for _, row in rows])]
+        return None
+    return markdown_table(rows[0][0], [row for _, row in rows])
+
+
+def leaderboard_section(reports: Sequence[Mapping[str, Any]]) -> list[str]:
+    """A ``## Leaderboard`` section of :func:`leaderboard_table` (none without a bench result)."""
+    table = leaderboard_table(reports)
+    return [] if table is None else ["## Leaderboard\n\n" + table]
 
 
 def _cell(value: Any) -> Any:
@@ -168,7 +177,13 @@ def _cell(value: Any) -> Any:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("runs", nargs="+", type=Path, metavar="DIR", help="--out directories of vgpnav eval")
-    parser.add_argument("--out", type=Path, required=True, help="directory of the side-by-side report")
+    out = parser.add_mutually_exclusive_group(required=True)
+    out.add_argument("--out", type=Path, help="directory of the side-by-side report")
+    out.add_argument(
+        "--leaderboard",
+        action="store_true",
+        help="print only the leaderboard of the vgpnav bench results files (Markdown), write nothing",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -177,6 +192,12 @@ def run(args: argparse.Namespace) -> int:
         load_report(d)  # every directory is checked before anything is written
     if len({Path(d).resolve() for d in args.runs}) != len(args.runs):
         raise ValueError("a run directory is given twice")
+    if args.leaderboard:
+        table = leaderboard_table([load_report(d) for d in args.runs])
+        if table is None:
+            raise ValueError("--leaderboard: none of the directories holds a vgpnav bench results file")
+        print(table)
+        return 0
     content = compare(args.runs, args.out, clock)
     shared = set.intersection(*(set(r["metrics"]) for r in content["runs"]))
     print_headline(f"{len(args.runs)} runs side by side, {len(shared)} metrics in common", args.out)

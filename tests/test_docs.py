@@ -58,6 +58,26 @@ def test_readme_is_short_and_names_every_command() -> None:
     assert "python -m pytest -q\n" in blocks(README, "bash")[0]
 
 
+def test_readme_leaderboard_is_the_bench_results_files(capsys) -> None:
+    """The README's leaderboard is what ``vgpnav report ... --leaderboard`` prints for the results
+    files it cites, row for row."""
+    table = re.search(r"<!-- leaderboard:begin -->\n(.*?)\n<!-- leaderboard:end -->", README, re.S)
+    assert table is not None
+    bench = ROOT / "benchmarks" / "pointnav-v1"
+    runs = sorted(str(d) for d in bench.glob("*/") if (d / "report.json").exists())
+    assert len(runs) >= 3
+    assert cli.main(["report", *runs, "--leaderboard"]) == 0
+    printed = capsys.readouterr().out.strip()
+    assert printed == table.group(1).strip()
+    assert len(printed.splitlines()) == len(runs) + 2
+
+
+def test_report_leaderboard_refuses_runs_without_bench_results(tmp_path, capsys) -> None:
+    (tmp_path / "report.json").write_text('{"settings": {}}')
+    assert cli.main(["report", str(tmp_path), "--leaderboard"]) == 2
+    assert "none of the directories holds a vgpnav bench results file" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command", readme_commands(), ids=" ".join)
 def test_readme_command_help(command: list[str]) -> None:
     out = io.StringIO()
