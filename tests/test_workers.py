@@ -7,8 +7,11 @@ The Ray test starts a local Ray instance with 2 CPUs; it runs when ``ray`` is im
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import os
+import subprocess
+import sys
 from dataclasses import asdict
 from pathlib import Path
 
@@ -63,8 +66,31 @@ def test_each_worker_sizes_its_thread_pools_to_its_share() -> None:
         assert r["share"] == r["backbone_pool"] == max(1, cores // 2) and r["opencv"] == 1
         assert r["environment"]["OMP_WAIT_POLICY"] == "PASSIVE"
         assert r["environment"]["OMP_NUM_THREADS"] == str(r["share"])
+        assert r["environment"]["OPENBLAS_NUM_THREADS"] == "1"
         if isinstance(r["native"], dict):  # threadpoolctl installed: every loaded BLAS / OpenMP pool
-            assert set(r["native"].values()) == {r["share"]}, r["native"]
+            assert all(n == (1 if _is_blas(k) else r["share"]) for k, n in r["native"].items()), r["native"]
+
+
+def _is_blas(pool: str) -> bool:
+    return pool.split(" ")[0] in {"openblas", "mkl", "blis"}
+
+
+def test_blas_gets_one_thread_whatever_the_share() -> None:
+    """BLAS pools spin between small calls: one thread even where the share is larger."""
+    code = (
+        "import json, numpy\n"
+        "from vgpnav_env.perception.backbones.threads import configure_threads, thread_report\n"
+        "configure_threads(threads=2)\n"
+        "print(json.dumps(thread_report()))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    report = json.loads(out)
+    assert report["share"] == report["backbone_pool"] == 2
+    env = report["environment"]
+    assert env["OPENBLAS_NUM_THREADS"] == "1" and env["OMP_NUM_THREADS"] == "2"
+    if isinstance(report["native"], dict):
+        blas = [n for k, n in report["native"].items() if _is_blas(k)]
+        assert blas and all(n == 1 for n in blas), report["native"]
 
 
 @pytest.mark.parametrize("n", [1, 2])

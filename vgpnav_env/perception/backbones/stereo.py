@@ -254,6 +254,7 @@ class _RefStack:
             self.query_stats.append((mu, var))
             self.stacked_stats.append((self.stack([mu] * n_refs), self.stack([var] * n_refs)))
         self.kernels = [np.ones((size, size), np.uint8) for size in windows]
+        self.minus_inf = np.full((n_refs * self.rows, self.w), -np.inf, np.float32)
 
     def stack(self, images: list[NDArray[np.float32]]) -> NDArray[np.float32]:
         g = self.g
@@ -295,9 +296,9 @@ class _RefStack:
         # Box filters keep running sums along rows, so one NaN would blank the rest of its row (a
         # reference leaving the view on the left hid the whole image): zero the unseen pixels and
         # mark windows that reach them instead.
-        unseen = np.isnan(warped)
-        np.copyto(warped, 0.0, where=unseen)
-        seen = np.logical_not(unseen).view(np.uint8)
+        # OpenCV's masked copies: numpy's masked assignment cost ~8 multiplications.
+        unseen = np.isnan(warped).view(np.uint8)
+        cv2.patchNaNs(warped, 0.0)
         square, cross, a, b, c, d = (buf[name] for name in ("square", "cross", "a", "b", "c", "d"))
         np.multiply(warped, warped, out=square)
         np.multiply(self.stacked_q, warped, out=cross)
@@ -316,8 +317,8 @@ class _RefStack:
             b += 1e-3
             np.sqrt(b, out=b)
             np.divide(c, b, out=c)
-            visible = cv2.erode(seen, self.kernels[k], borderValue=1).view(bool)
-            np.copyto(c, -np.inf, where=np.logical_not(visible))
+            hidden = cv2.dilate(unseen, self.kernels[k], borderValue=0)  # a window reaches an unseen pixel
+            cv2.copyTo(self.minus_inf, hidden, c)
             per_ref = c.reshape(self.n_refs, rows, w)[:, g : g + h]
             scores[k, plane] = top_mean(per_ref, keep)
 

@@ -2,15 +2,17 @@
 
 :func:`configure_threads` is the one place that sizes the native thread pools of a process to its
 CPU share (the cores of its CPU affinity divided by the worker processes that share them; a worker
-of :mod:`vgpnav_env.eval.workers` already runs on its own share): OpenMP, OpenBLAS, MKL and numexpr
-through their environment variables (read when a library loads: effective for libraries not loaded
-yet and for child processes), BLAS libraries already loaded through ``threadpoolctl`` (when
-installed), OpenCV, torch's intra-op pool (inter-op 1) when torch is loaded, and
-``OMP_WAIT_POLICY=PASSIVE``: an idle OpenMP thread sleeps instead of spinning on a core another
-worker needs (with spinning, a torch pair took 1-7 s instead of 40-60 ms on 2 shared cores).
-OpenCV gets one thread: the backbone parallelizes over pairs and plane chunks itself (below), and
-OpenCV's own pool spin-waits between the small per-image calls. The CLI calls it once, each worker
-process at its start. :func:`thread_report` says what a process uses.
+of :mod:`vgpnav_env.eval.workers` already runs on its own share): OpenMP and numexpr through their
+environment variables (read when a library loads: effective for libraries not loaded yet and for
+child processes) and ``threadpoolctl`` (when installed) for pools already loaded, torch's intra-op
+pool (inter-op 1) when torch is loaded, and ``OMP_WAIT_POLICY=PASSIVE``: an idle OpenMP thread
+sleeps instead of spinning on a core another worker needs (with spinning, a torch pair took 1-7 s
+instead of 40-60 ms on 2 shared cores). BLAS (OpenBLAS, MKL, Accelerate) and OpenCV get ONE thread:
+the perception's matrices are small, the backbone parallelizes over pairs and plane chunks itself
+(below), and their pools spin-wait between the small calls (OpenBLAS's pthreads ignore the OpenMP
+wait policy): with 2 BLAS threads beside the backbone's pool a temporal frame cost ~0.2 CPU-s more
+on 2 cores, for the same wall time. The CLI calls it once, each worker process at its start.
+:func:`thread_report` says what a process uses.
 
 The backbone's pool: OpenCV, poselib and numpy's array kernels release the GIL, so the
 per-reference two-view pairs and the plane-sweep chunks run on several cores from plain threads
@@ -46,6 +48,8 @@ THREAD_VARIABLES = (
     "NUMEXPR_NUM_THREADS",
     "VECLIB_MAXIMUM_THREADS",
 )
+#: Of those, the BLAS pools: one thread whatever the share (module docstring).
+BLAS_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS")
 
 
 def available_cores() -> int:
@@ -67,21 +71,22 @@ def resolve_threads(threads: int) -> int:
 
 
 def configure_threads(workers: int = 1, threads: int | None = None) -> int:
-    """Size every native thread pool of this process to its CPU share (module docstring): the cores
-    of its affinity divided by ``workers`` processes sharing them (at least 1), or ``threads`` when
-    given (e.g. a Ray task's CPUs). Returns the share."""
+    """Size the native thread pools of this process to its CPU share (module docstring; BLAS and
+    OpenCV get one thread): the cores of its affinity divided by ``workers`` processes sharing them
+    (at least 1), or ``threads`` when given (e.g. a Ray task's CPUs). Returns the share."""
     global _share
     if workers < 1 or (threads is not None and threads < 1):
         raise ValueError(f"workers and threads must be >= 1, got {workers}, {threads}")
     share = threads if threads is not None else max(1, available_cores() // workers)
     _share = (os.getpid(), share)
     for name in THREAD_VARIABLES:
-        os.environ[name] = str(share)
+        os.environ[name] = "1" if name in BLAS_VARIABLES else str(share)
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     try:
         from threadpoolctl import threadpool_limits
 
-        threadpool_limits(share)
+        threadpool_limits(1, user_api="blas")
+        threadpool_limits(share, user_api="openmp")
     except ImportError:  # pragma: no cover - optional: the variables above size BLAS loaded later
         pass
     import cv2
