@@ -30,7 +30,7 @@ import argparse
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -237,6 +237,8 @@ class FrameRecord:
     ``visual_odometry``, whether visual odometry refined the motion into the frame;
     ``prior_placed``: localized only thanks to the estimate's prior
     (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.prior_placed`).
+    ``evidence``: the verification's :class:`~vgpnav_env.perception.verify.Evidence` of the
+    candidate pose by field name ({} without a verdict): the data the calibrated model is fitted on.
     """
 
     frame: int
@@ -265,6 +267,7 @@ class FrameRecord:
     visual_odometry: bool = False
     gate: str = ""
     prior_placed: bool = False
+    evidence: dict[str, float] = field(default_factory=dict)
 
     @property
     def gross(self) -> bool:
@@ -642,7 +645,16 @@ def _record(
         candidate_confidence=result.verdict.score if result.verdict is not None else float("nan"),
         gate=_gate(result),
         prior_placed=result.prior_placed,
+        evidence=_evidence(result),
     )
+
+
+def _evidence(result: PerceptionResult) -> dict[str, float]:
+    """:attr:`FrameRecord.evidence`: the verdict's evidence as numbers ({} without one)."""
+    verdict = result.verdict
+    if verdict is None or verdict.evidence is None:
+        return {}
+    return {k: float(v) for k, v in asdict(verdict.evidence).items()}
 
 
 def _gate(result: PerceptionResult) -> str:

@@ -393,6 +393,88 @@ VERIFY_CHECKS: dict[str, str] = {
 
 
 @dataclass(frozen=True)
+class Evidence:
+    """What the images say about one pose, in quantities that do not depend on the image size or
+    the feature budget (shares and ratios of match counts), for the calibrated model.
+
+    ``match_share``: the matches of the confident pairs the pose explains, over all their matches;
+    ``explained_share``: the pair confidence it explains (:func:`explained_confidence`);
+    ``agree_share``: the confident pairs whose own pose's matches it explains at least half of;
+    ``rival_margin`` in [-1, 1]: ``(s - r) / (s + r)`` of the pose's support ``s`` and the
+    strongest distinct rival's ``r`` (1 without a rival); ``off_plane_share``: the matches off its
+    dominant plane of the pose's best reference, over that reference's explained matches;
+    ``confident_rival``: a distinct rival has a pair as confident as the pose's best (0 / 1);
+    ``roll_deg`` / ``height_off_m``: the mount; ``placed``: inside a state estimate's prior (0 / 1).
+    The counts behind them (``strength``, ``rival_strength``, ``off_plane``, ``n_matches``,
+    ``n_supporting``, ``n_pairs``) are kept for analysis, not for the model.
+    """
+
+    match_share: float
+    explained_share: float
+    agree_share: float
+    rival_margin: float
+    off_plane_share: float
+    confident_rival: float
+    roll_deg: float
+    height_off_m: float
+    placed: float
+    strength: int
+    rival_strength: int
+    off_plane: int
+    n_matches: int
+    n_supporting: int
+    n_pairs: int
+
+    @classmethod
+    def of(
+        cls,
+        raw: NDArray[np.int64],
+        own: NDArray[np.int64],
+        out: BackboneOutput,
+        *,
+        off_plane: int,
+        rival_strength: int,
+        rival_confidence: bool,
+        roll_deg: float,
+        height_off_m: float,
+        placed: bool,
+        ambiguity_references: int | None,
+        min_support: int,
+    ) -> Evidence:
+        """The evidence of a pose from its per-reference support ``raw`` (k,), the pairs' own
+        support ``own`` (k,), the backbone output and the rival / plane / mount numbers."""
+        c = np.asarray(out.confidence, float)
+        pairs = c > 0
+        if out.matches is not None:
+            n = np.array([len(np.asarray(m).reshape(-1, 4)) for m in out.matches], float)
+        else:
+            n = np.asarray(out.n_matches, float)
+        raw, own = np.asarray(raw, float), np.asarray(own, float)
+        total = float(n[pairs].sum())
+        share = np.minimum(raw / np.maximum(own, 1.0), 1.0)
+        supporting = raw >= min_support
+        s = float(np.sort(np.where(supporting, raw, 0.0))[::-1][:ambiguity_references].sum())
+        best = float(raw[supporting].max(initial=0.0))
+        return cls(
+            match_share=float(raw[pairs].sum() / total) if total > 0 else 0.0,
+            explained_share=float((c[pairs] * share[pairs]).sum() / c[pairs].sum()) if pairs.any() else 0.0,
+            agree_share=float(((raw >= 0.5 * own) & (own > 0))[pairs].mean()) if pairs.any() else 0.0,
+            rival_margin=(s - rival_strength) / (s + rival_strength) if s + rival_strength > 0 else 0.0,
+            off_plane_share=min(1.0, off_plane / best) if best > 0 else 0.0,
+            confident_rival=float(rival_confidence),
+            roll_deg=float(roll_deg),
+            height_off_m=float(height_off_m) if np.isfinite(height_off_m) else 0.0,
+            placed=float(placed),
+            strength=int(raw[supporting].sum()),
+            rival_strength=int(rival_strength),
+            off_plane=int(off_plane),
+            n_matches=int(total),
+            n_supporting=int(supporting.sum()),
+            n_pairs=int(pairs.sum()),
+        )
+
+
+@dataclass(frozen=True)
 class Verdict:
     """Whether the images confirm a pose (:func:`verify_pose`).
 
@@ -421,6 +503,7 @@ class Verdict:
     rival: NDArray[np.float64] | None = None
     check: str = ""
     by_prior: bool = False
+    evidence: Evidence | None = None
 
     @property
     def n_supporting(self) -> int:
@@ -527,12 +610,28 @@ def verify_pose(
         if placed and prior.admits(T) and value > inside_strength:
             inside_strength, inside = value, T
     n = int(explained.sum())
+    own = pair_support(T_wi, out, camera, config) if own is None else own
+    evidence = Evidence.of(
+        raw,
+        own,
+        out,
+        off_plane=off_plane(T_wq, explained) if flat is not None else 0,
+        rival_strength=inside_strength if placed else rival_strength,
+        rival_confidence=confident_strength > 0,
+        roll_deg=_roll_deg(T_wq),
+        height_off_m=float(T_wq[2, 3] - camera_z),
+        placed=placed,
+        ambiguity_references=config.ambiguity_references,
+        min_support=config.min_support_matches,
+    )
 
     def verdict(check: str, detail: str, by_prior: bool = False) -> Verdict:
         reason = "ambiguous" if check == "ambiguity" else "unverified" if check else ""
         strongest, its = (inside_strength, inside) if placed else (rival_strength, rival)
         score = strength / (strength + strongest + config.confidence_matches)
-        return Verdict(not reason, reason, detail, score, support, strength, strongest, its, check, by_prior)
+        return Verdict(
+            not reason, reason, detail, score, support, strength, strongest, its, check, by_prior, evidence
+        )
 
     mount = implausible_mount(T_wq, camera_z, config)
     if mount:
