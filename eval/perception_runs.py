@@ -226,7 +226,8 @@ class FrameRecord:
     ``retrieval_hit``: one of the ``retrieved`` database indices lies within
     :data:`RETRIEVAL_HIT` of the true pose; ``references``: the indices the pose came from.
     ``confidence``: the verification's confidence in the pose (0 when lost);
-    ``candidate_confidence``: its confidence before any rejection (nan without a verdict).
+    ``candidate_confidence``: the probability the calibrated model gives the candidate pose (its
+    verdict's score without a model; nan without a verdict).
     ``source``: where the references came from (``tracking`` around the predicted pose, or
     ``global`` retrieval). ``gate``: what rejected a lost frame, its ``reason`` or, when the
     verification rejected its pose as unverified, ``unverified: <check>``
@@ -642,7 +643,7 @@ def _record(
         retrieved=[int(j) for j in result.retrieved],
         references=[int(j) for j in result.references],
         confidence=result.confidence,
-        candidate_confidence=result.verdict.score if result.verdict is not None else float("nan"),
+        candidate_confidence=result.verdict.trust if result.verdict is not None else float("nan"),
         gate=_gate(result),
         prior_placed=result.prior_placed,
         evidence=_evidence(result),
