@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, transform_points
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, rotation_angle, transform_points
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone, rootsift
@@ -82,6 +82,7 @@ from vgpnav_env.perception.verify import (
     LostReason,
     PoseGate,
     Verdict,
+    VerifyCheck,
     VerifyConfig,
     assess,
     check_height,
@@ -332,6 +333,8 @@ class Perceiver:
         ``anchor`` (e.g. one initialised by another perceiver of the same sequence)."""
         self.map = self.database.new_map(self.config.occupancy)
         self.anchor = copy.deepcopy(anchor) if anchor is not None else GroundAnchor(self.config.scale)
+        self._floor_votes: list[NDArray[np.float64]] = []
+        self._map_floor_refuted = False
 
     @property
     def initialized(self) -> bool:
@@ -551,12 +554,21 @@ class Perceiver:
         cfg = self.config
         camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
         map_z = self._map_camera_z()
-        if pose.anchor is not None and np.isfinite(map_z):
+        anchoring = pose.anchor is not None and np.isfinite(map_z) and not self._map_floor_refuted
+        if anchoring:
             camera_z = map_z  # the pose would anchor the ground: the map's floor checks it
-        a = assess(
-            pose.T_wc, T_wi, out, self.camera, cfg.verify, scale=pose.scale.scale, averaging=cfg.averaging,
-            camera_z=camera_z, prior=prior,
-        )  # fmt: skip
+
+        def verdict_at(z: float):
+            return assess(
+                pose.T_wc, T_wi, out, self.camera, cfg.verify, scale=pose.scale.scale,
+                averaging=cfg.averaging, camera_z=z, prior=prior,
+            )  # fmt: skip
+
+        a = verdict_at(camera_z)
+        if anchoring and a.verdict.check == VerifyCheck.MOUNT:
+            own = verdict_at(float(pose.T_wc[2, 3]))  # the mount's roll and pitch only
+            if own.verdict.ok and self._refutes_map_floor(pose.T_wc):
+                a, camera_z = own, float(pose.T_wc[2, 3])
         if prior is None or (a.verdict.ok and prior.admits(pose.T_wc)):
             return pose.T_wc, a.verdict
         picked = prior_hypothesis(
@@ -564,6 +576,24 @@ class Perceiver:
             scale=pose.scale.scale, averaging=cfg.averaging, camera_z=camera_z, own=a.own,
         )  # fmt: skip
         return (pose.T_wc, a.verdict) if picked is None else picked
+
+    def _refutes_map_floor(self, T_wc: NDArray[np.float64]) -> bool:
+        """Count ``T_wc``, a pose the images verify but for its height against the map's floor,
+        as a vote against that floor: refuted (:attr:`_map_floor_refuted`, until :meth:`reset`)
+        once two such poses of distinct places (farther apart than ``rival_distance`` or turned
+        more than ``rival_angle_deg``) agree on the camera height within ``pose_height_tolerance``.
+        A floor the reconstruction got wrong would otherwise reject every right pose that could
+        anchor the ground, and the episode would never localize."""
+        v = self.config.verify
+        tol = v.pose_height_tolerance if v.pose_height_tolerance is not None else np.inf
+        for T in self._floor_votes:
+            distinct = np.linalg.norm(T[:3, 3] - T_wc[:3, 3]) > v.rival_distance or rotation_angle(
+                T[:3, :3], T_wc[:3, :3]
+            ) > np.deg2rad(v.rival_angle_deg)
+            if distinct and abs(T[2, 3] - T_wc[2, 3]) <= tol:
+                self._map_floor_refuted = True
+        self._floor_votes.append(np.asarray(T_wc, float).copy())
+        return self._map_floor_refuted
 
     def _map_camera_z(self) -> float:
         """World height (metres) of a camera at the calibrated height above the floor the
