@@ -32,12 +32,14 @@ def _odometry(previous: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(pose[2] - previous[2])])
 
 
-@pytest.mark.parametrize("floor_error", [None, 0.4])
+@pytest.mark.parametrize("wrong", [None, "map floor", "anchor"])
 def test_lost_first_frames_and_a_failed_anchor_still_give_a_first_estimate(
-    database: Database, tiny_build_dir: Path, floor_error: float | None, monkeypatch: pytest.MonkeyPatch
+    database: Database, tiny_build_dir: Path, wrong: str | None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    if floor_error is not None:  # the map's floor (truly at z = 0) floor_error metres too high
-        monkeypatch.setattr(database, "z_ground", floor_error)
+    """``wrong``: nothing; the map's floor (truly at z = 0) 0.4 m too high; or the ground anchored
+    1 m too low by the first frame (as a wrong first pose would)."""
+    if wrong == "map floor":
+        monkeypatch.setattr(database, "z_ground", 0.4)
     run = load_run(tiny_build_dir / "query")
     dark = np.zeros_like(run.images[0])  # nothing to match: lost
     order = [0, 1, 4, 3, 2, 5]
@@ -45,8 +47,14 @@ def test_lost_first_frames_and_a_failed_anchor_still_give_a_first_estimate(
     truth = np.array([base_pose(T) for _, T in frames])
     pitch = camera_yaw_pitch(run.poses[0])[1]
     perceiver = Perceiver(database, "classical", config=PerceptionConfig(camera_height=QUERY_HEIGHT))
-    initial = perceiver.initialize(dark)
-    assert not initial[0].localized and not perceiver.initialized  # the ground anchor failed
+    if wrong == "anchor":
+        assert perceiver.initialize(run.images[0])[0].localized
+        perceiver.anchor.z_ground -= 1.0
+        frames = frames[3:]
+        truth = truth[3:]
+    else:
+        initial = perceiver.initialize(dark)
+        assert not initial[0].localized and not perceiver.initialized  # the ground anchor failed
     ekf = EKFState([-2.0, -2.0, -np.pi], [6.0, 7.0, np.pi])
     ekf.reset(dark, fallback=[2.0, 2.5, 0.0])
     first = None
@@ -57,12 +65,12 @@ def test_lost_first_frames_and_a_failed_anchor_still_give_a_first_estimate(
         predicted = ekf.tracking_pose()
         T_pred = None if predicted is None else camera_T_wc(predicted, QUERY_HEIGHT, pitch)
         result = perceiver.perceive(rgb, predicted=T_pred, prior=ekf.prior())
-        if n < 3:
+        if n < 3 and wrong != "anchor":
             assert result.status == "lost"
         measured = result.measurement
         ekf.correct(None if measured is None else base_pose(measured), result.confidence)
         if ekf.has_estimate and first is None:
             first = n
     assert perceiver.initialized  # a later verified pose anchored the ground
-    assert first is not None and first >= 3, "the state estimate never started"
+    assert first is not None and (first >= 3 or wrong == "anchor"), "the state estimate never started"
     assert np.linalg.norm(ekf.estimate[:2] - truth[-1, :2]) < 0.1

@@ -333,8 +333,11 @@ class Perceiver:
         ``anchor`` (e.g. one initialised by another perceiver of the same sequence)."""
         self.map = self.database.new_map(self.config.occupancy)
         self.anchor = copy.deepcopy(anchor) if anchor is not None else GroundAnchor(self.config.scale)
+        # Floors a pose's height is checked against, until poses refute them (_refutes_floor): the
+        # map's (before the anchor) and an anchor no pose of another place has confirmed yet.
         self._floor_votes: list[NDArray[np.float64]] = []
         self._map_floor_refuted = False
+        self._anchored_by: list[NDArray[np.float64]] = []  # the poses that set an unconfirmed anchor
 
     @property
     def initialized(self) -> bool:
@@ -367,9 +370,10 @@ class Perceiver:
                 observations.append((loc.motion.T_wq, None))
         if observations:
             self.anchor.initialize(observations, self.config.camera_height)
+            self._anchored_by = [T for T, _ in observations]
         results = [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
         if not any(r.localized for r in results):
-            self.anchor = GroundAnchor(self.config.scale)
+            self.anchor, self._anchored_by = GroundAnchor(self.config.scale), []
         return results
 
     def perceive(
@@ -497,9 +501,15 @@ class Perceiver:
         if not loc.ok:
             lost = _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground)
             return Attempt(lost, None, loc, pose)
+        anchor = self.anchor
         with clock.stage("verification"):
             T_wc, verdict = self.verify(loc, pose, prior)
         rival = T_wc is not pose.T_wc
+        if self.anchor is not anchor:  # the pose refuted the anchored floor: its scale anew
+            with clock.stage("scale_recovery"):
+                loc, rescaled = self._recover_scale(loc, gate)
+                pose = replace(rescaled, T_wc=pose.T_wc)
+                points_w = self.points(loc, pose.T_wc, pose.scale) if loc.ok else None
         if rival:  # the prior picked a rival: its pose and points
             pose = replace(pose, T_wc=T_wc)
             points_w = self.points(loc, T_wc, pose.scale)
@@ -516,7 +526,9 @@ class Perceiver:
             kw = {"T_wc": pose.T_wc, "z_ground": pose.z_ground, "ground": pose.ground, "verdict": verdict}
             return Attempt(_lost(loc, clock, **kw), None, loc, pose, rival)
         if pose.anchor is not None and not self.anchor.initialized:
-            self.anchor = pose.anchor  # the first verified pose anchors the ground
+            self.anchor, self._anchored_by = pose.anchor, [pose.T_wc]  # the first verified pose anchors
+        elif self._anchored_by and all(self._distinct(pose.T_wc, T) for T in self._anchored_by):
+            self._anchored_by, self._floor_votes = [], []  # a pose of another place confirms the anchor
         result = PerceptionResult(
             status="localized",
             reason="",
@@ -565,10 +577,19 @@ class Perceiver:
             )  # fmt: skip
 
         a = verdict_at(camera_z)
-        if anchoring and a.verdict.check == VerifyCheck.MOUNT:
+        unconfirmed = pose.anchor is None and bool(self._anchored_by)
+        if (anchoring or unconfirmed) and a.verdict.check == VerifyCheck.MOUNT:
             own = verdict_at(float(pose.T_wc[2, 3]))  # the mount's roll and pitch only
-            if own.verdict.ok and self._refutes_map_floor(pose.T_wc):
+            # The map's floor stands on the whole database: it takes more poses to refute.
+            needed = 3 if anchoring else len(self._anchored_by) + 1
+            if own.verdict.ok and self._refutes_floor(pose.T_wc, needed):
                 a, camera_z = own, float(pose.T_wc[2, 3])
+                if anchoring:
+                    self._map_floor_refuted = True
+                else:  # the pose anchors the ground anew
+                    self.anchor = GroundAnchor(cfg.scale)
+                    self.anchor.initialize([(pose.T_wc, None)], cfg.camera_height)
+                    self._anchored_by = [pose.T_wc]
         if prior is None or (a.verdict.ok and prior.admits(pose.T_wc)):
             return pose.T_wc, a.verdict
         picked = prior_hypothesis(
@@ -577,23 +598,27 @@ class Perceiver:
         )  # fmt: skip
         return (pose.T_wc, a.verdict) if picked is None else picked
 
-    def _refutes_map_floor(self, T_wc: NDArray[np.float64]) -> bool:
-        """Count ``T_wc``, a pose the images verify but for its height against the map's floor,
-        as a vote against that floor: refuted (:attr:`_map_floor_refuted`, until :meth:`reset`)
-        once two such poses of distinct places (farther apart than ``rival_distance`` or turned
-        more than ``rival_angle_deg``) agree on the camera height within ``pose_height_tolerance``.
-        A floor the reconstruction got wrong would otherwise reject every right pose that could
-        anchor the ground, and the episode would never localize."""
+    def _refutes_floor(self, T_wc: NDArray[np.float64], needed: int) -> bool:
+        """Count ``T_wc``, a pose the images verify but for its camera height against a floor (the
+        map's before the ground is anchored, or an anchor no pose of another place has confirmed),
+        as a vote against that floor: refuted once ``needed`` such poses -- ``T_wc`` and others of
+        another place (:meth:`_distinct`) -- agree on the camera height within
+        ``pose_height_tolerance``. A wrong floor (a reconstruction's, or one anchored by a wrong
+        first pose) would otherwise reject every right pose after it, and the episode would never
+        localize."""
         v = self.config.verify
         tol = v.pose_height_tolerance if v.pose_height_tolerance is not None else np.inf
-        for T in self._floor_votes:
-            distinct = np.linalg.norm(T[:3, 3] - T_wc[:3, 3]) > v.rival_distance or rotation_angle(
-                T[:3, :3], T_wc[:3, :3]
-            ) > np.deg2rad(v.rival_angle_deg)
-            if distinct and abs(T[2, 3] - T_wc[2, 3]) <= tol:
-                self._map_floor_refuted = True
-        self._floor_votes.append(np.asarray(T_wc, float).copy())
-        return self._map_floor_refuted
+        agree = [T for T in self._floor_votes if self._distinct(T, T_wc) and abs(T[2, 3] - T_wc[2, 3]) <= tol]
+        refuted = len(agree) + 1 >= needed
+        self._floor_votes = [] if refuted else [*self._floor_votes, np.asarray(T_wc, float).copy()]
+        return refuted
+
+    def _distinct(self, T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> bool:
+        """Whether two camera poses are distinct places: farther apart than ``rival_distance`` or
+        turned more than ``rival_angle_deg``."""
+        v = self.config.verify
+        far = np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > v.rival_distance
+        return bool(far or rotation_angle(T_a[:3, :3], T_b[:3, :3]) > np.deg2rad(v.rival_angle_deg))
 
     def _map_camera_z(self) -> float:
         """World height (metres) of a camera at the calibrated height above the floor the
