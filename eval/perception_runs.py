@@ -169,6 +169,12 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
         help="re-rank the N most similar database images by verified feature matches before the "
         f"selection, 0 = off (default {RetrievalConfig.rerank})",
     )
+    parser.add_argument(
+        "--verification",
+        choices=["rules", "model"],
+        default="rules",
+        help="who accepts a pose: the rules of VerifyConfig, or the calibrated model (default rules)",
+    )
 
 
 def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Path | None = None) -> Path:
@@ -817,6 +823,8 @@ def perception_metrics(records: list[FrameRecord]) -> dict[str, Any]:
 def config_from_args(args: argparse.Namespace, *, scale: bool = True) -> PerceptionConfig:
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
-    return PerceptionConfig.ablation(
+    config = PerceptionConfig.ablation(
         retrieval=args.retrieval, averaging=args.averaging, scale=scale, k=args.k, rerank=args.rerank
     )
+    verification = getattr(args, "verification", "rules")
+    return replace(config, verify=replace(config.verify, decision=verification))
