@@ -566,8 +566,8 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
 def test_a_pose_placed_inside_a_tight_prior_needs_less_support_than_inside_a_wide_one(
     database: Database, query
 ) -> None:
-    """A pose placed inside the prior (:func:`~vgpnav_env.perception.recovery.place_on_prior`) whose references explain
-    fewer matches than the floor without a prior is kept when the prior is tight enough
+    """A pose placed inside the prior (:func:`~vgpnav_env.perception.recovery.place_on_prior`) whose
+    references explain fewer matches than the floor without a prior is kept when the prior is tight enough
     (:func:`prior_support_floor`: ``prior_support_per_m`` per metre of its radius; home:2's frame 28
     on the temporal run, 0.021 m off with 109 matches inside a 0.23 m prior); never without the
     scaled floor, nor inside a prior in the wrong place."""

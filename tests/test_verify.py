@@ -11,8 +11,8 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
-from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.recovery import pooled_pairs, slide_on_ray
+from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import (
     PoseGate,
     VerifyConfig,

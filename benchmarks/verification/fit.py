@@ -48,7 +48,8 @@ def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
             report = json.loads(path.read_text())
             scene = path.parent.name
             for r in report.get("records", []):
-                ev, t, deg = r.get("evidence") or {}, r["candidate_translation_m"], r["candidate_rotation_deg"]
+                ev = r.get("evidence") or {}
+                t, deg = r["candidate_translation_m"], r["candidate_rotation_deg"]
                 if not ev or r.get("gate") == "unverified: mount" or t is None or deg is None:
                     continue
                 if not (np.isfinite(t) and np.isfinite(deg)):
@@ -90,7 +91,8 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
     accept = p >= VerifyConfig().accept_probability
     lines = [
         f"rows {len(rows)}, right {int(right.sum())}, gross {int(gross.sum())}; "
-        f"AUC right vs not {auc(p, right):.3f}, right vs gross {auc(p[right | gross], right[right | gross]):.3f}",
+        f"AUC right vs not {auc(p, right):.3f}, "
+        f"right vs gross {auc(p[right | gross], right[right | gross]):.3f}",
         "| scene | rows | rules: accepted / gross / right | model: accepted / gross / right |",
         "|---|---|---|---|",
     ]
