@@ -30,7 +30,7 @@ import argparse
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -169,6 +169,12 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
         help="re-rank the N most similar database images by verified feature matches before the "
         f"selection, 0 = off (default {RetrievalConfig.rerank})",
     )
+    parser.add_argument(
+        "--verification",
+        choices=["rules", "model"],
+        default="rules",
+        help="who accepts a pose: the rules of VerifyConfig, or the calibrated model (default rules)",
+    )
 
 
 def resolve_build(args: argparse.Namespace, scene: str | None = None, build: Path | None = None) -> Path:
@@ -226,7 +232,8 @@ class FrameRecord:
     ``retrieval_hit``: one of the ``retrieved`` database indices lies within
     :data:`RETRIEVAL_HIT` of the true pose; ``references``: the indices the pose came from.
     ``confidence``: the verification's confidence in the pose (0 when lost);
-    ``candidate_confidence``: its confidence before any rejection (nan without a verdict).
+    ``candidate_confidence``: the probability the calibrated model gives the candidate pose (its
+    verdict's score without a model; nan without a verdict).
     ``source``: where the references came from (``tracking`` around the predicted pose, or
     ``global`` retrieval). ``gate``: what rejected a lost frame, its ``reason`` or, when the
     verification rejected its pose as unverified, ``unverified: <check>``
@@ -237,6 +244,8 @@ class FrameRecord:
     ``visual_odometry``, whether visual odometry refined the motion into the frame;
     ``prior_placed``: localized only thanks to the estimate's prior
     (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.prior_placed`).
+    ``evidence``: the verification's :class:`~vgpnav_env.perception.verify.Evidence` of the
+    candidate pose by field name ({} without a verdict): the data the calibrated model is fitted on.
     """
 
     frame: int
@@ -265,6 +274,7 @@ class FrameRecord:
     visual_odometry: bool = False
     gate: str = ""
     prior_placed: bool = False
+    evidence: dict[str, float] = field(default_factory=dict)
 
     @property
     def gross(self) -> bool:
@@ -639,10 +649,19 @@ def _record(
         retrieved=[int(j) for j in result.retrieved],
         references=[int(j) for j in result.references],
         confidence=result.confidence,
-        candidate_confidence=result.verdict.score if result.verdict is not None else float("nan"),
+        candidate_confidence=result.verdict.trust if result.verdict is not None else float("nan"),
         gate=_gate(result),
         prior_placed=result.prior_placed,
+        evidence=_evidence(result),
     )
+
+
+def _evidence(result: PerceptionResult) -> dict[str, float]:
+    """:attr:`FrameRecord.evidence`: the verdict's evidence as numbers ({} without one)."""
+    verdict = result.verdict
+    if verdict is None or verdict.evidence is None:
+        return {}
+    return {k: float(v) for k, v in asdict(verdict.evidence).items()}
 
 
 def _gate(result: PerceptionResult) -> str:
@@ -804,6 +823,8 @@ def perception_metrics(records: list[FrameRecord]) -> dict[str, Any]:
 def config_from_args(args: argparse.Namespace, *, scale: bool = True) -> PerceptionConfig:
     if args.k < 1:
         raise ValueError(f"--k must be >= 1, got {args.k}")
-    return PerceptionConfig.ablation(
+    config = PerceptionConfig.ablation(
         retrieval=args.retrieval, averaging=args.averaging, scale=scale, k=args.k, rerank=args.rerank
     )
+    verification = getattr(args, "verification", "rules")
+    return replace(config, verify=replace(config.verify, decision=verification))

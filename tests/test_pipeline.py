@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from tiny_build import QUERY_HEIGHT
 
 import vgpnav_env.perception.database as database_module
-import vgpnav_env.perception.pipeline as pipeline_module
+import vgpnav_env.perception.recovery as recovery_module
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
@@ -504,7 +504,7 @@ def test_a_pose_slides_along_its_ray_only_inside_a_prior(
         moved[0, 3] += 0.005
         return moved, 1.0
 
-    monkeypatch.setattr(pipeline_module, "slide_on_ray", slide)
+    monkeypatch.setattr(recovery_module, "slide_on_ray", slide)
     perceiver, priv = _simulated_perceiver(database, query)
     alone = perceiver.perceive(run.images[2], priv[2])
     assert alone.localized and not offered and errors(alone.T_wc, T)[0] < 0.005
@@ -566,8 +566,8 @@ def test_a_frame_motion_averaging_cannot_place_is_placed_inside_a_certain_prior_
 def test_a_pose_placed_inside_a_tight_prior_needs_less_support_than_inside_a_wide_one(
     database: Database, query
 ) -> None:
-    """A pose placed inside the prior (:meth:`Perceiver._place_on_prior`) whose references explain
-    fewer matches than the floor without a prior is kept when the prior is tight enough
+    """A pose placed inside the prior (:func:`~vgpnav_env.perception.recovery.place_on_prior`) whose
+    references explain fewer matches than the floor without a prior is kept when the prior is tight enough
     (:func:`prior_support_floor`: ``prior_support_per_m`` per metre of its radius; home:2's frame 28
     on the temporal run, 0.021 m off with 109 matches inside a 0.23 m prior); never without the
     scaled floor, nor inside a prior in the wrong place."""
@@ -706,7 +706,7 @@ def test_a_pose_the_rays_place_stands_without_a_scale_and_maps_nothing(
     perceiver.initialize(run.images[:1], [Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0])])
     unscaled = (ScaleEstimate(float("nan"), "none"), GroundEstimate(float("nan"), 0.0, False))
     monkeypatch.setattr(Perceiver, "_ground_scale", lambda self, loc, T_wc, anchor: unscaled)
-    monkeypatch.setattr(Perceiver, "_ground", lambda self, out, T_wc, prior: unscaled[1])
+    monkeypatch.setattr(Perceiver, "ground", lambda self, out, T_wc, prior: unscaled[1])
     result = perceiver.perceive(run.images[i], priv)
     assert result.localized and result.verdict.ok and not result.prior_placed, result.detail
     assert result.scale_source == "none" and np.isnan(result.scale) and len(result.points_w) == 0

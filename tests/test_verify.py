@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
+from vgpnav_env.perception.recovery import pooled_pairs, slide_on_ray
 from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import (
     PoseGate,
@@ -22,14 +23,12 @@ from vgpnav_env.perception.verify import (
     off_plane_matches,
     pair_support,
     plausible_scale,
-    pooled_pairs,
     prior_hypothesis,
     prior_pairs,
     prior_poses,
     prior_support_floor,
     refine_pose,
     rival_pairs,
-    slide_on_ray,
     verify_pose,
 )
 from vgpnav_env.robot import base_pose

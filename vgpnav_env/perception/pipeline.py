@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, transform_points
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, rotation_angle, transform_points
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone, rootsift
@@ -52,6 +52,15 @@ from vgpnav_env.perception.motion_averaging import (
 from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
 from vgpnav_env.perception.points import depth_points
 from vgpnav_env.perception.posed_depth import PosedDepthConfig, posed_depth, posed_references
+from vgpnav_env.perception.recovery import (
+    RECOVERY,
+    Attempt,
+    Frame,
+    Outcome,
+    Phase,
+    pooled_pairs,
+    second_round,
+)
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
     TrackingConfig,
@@ -69,43 +78,32 @@ from vgpnav_env.perception.scale_recovery import (
     recover_metric_points,
 )
 from vgpnav_env.perception.verify import (
+    LOST_REASONS,
+    LostReason,
     PoseGate,
     Verdict,
+    VerifyCheck,
     VerifyConfig,
+    assess,
     check_height,
     check_scale,
     implausible_mount,
-    pair_support,
     plausible_scale,
-    pooled_pairs,
     prior_hypothesis,
-    prior_pairs,
-    prior_poses,
-    prior_support_floor,
-    reference_support,
-    refine_pose,
-    rival_pairs,
-    rival_poses,
-    round_rank,
-    second_round_references,
-    single_pair_fallback,
-    slide_on_ray,
-    verify_pose,
 )
 from vgpnav_env.robot import CAMERA_HEIGHT, camera_T_wc
 
 logger = logging.getLogger(__name__)
 
-#: Why a frame is lost: reason -> what it means (reports define their labels from it).
-LOST_REASONS: dict[str, str] = {
-    "too few matches": "no reference pair passed the backbone (too few consistent feature matches)",
-    "no consensus": "the references' poses disagree (rotation consensus, ray triangulation, camera height)",
-    "no ground": "no metric scale: no ground plane and no ray-implied scale",
-    "inconsistent motion": "the pose lies outside the caller's odometry gate (PoseGate), or, verified, "
-    "outside the prior of its state estimate",
-    "unverified": "the images do not confirm the pose (verify_pose: epipolar support, gravity, height)",
-    "ambiguous": "the images confirm a distinct rival pose as well (e.g. identical rooms)",
-}
+__all__ = [
+    "LOST_REASONS",
+    "PERCEPTION_MODES",
+    "TIMING_KEYS",
+    "Perceiver",
+    "PerceptionConfig",
+    "PerceptionResult",
+    "perceive",
+]
 TIMING_KEYS = (
     "retrieval",
     "backbone",
@@ -232,12 +230,13 @@ class PerceptionResult:
 
 
 @dataclass(frozen=True)
-class _Localization:
+class Localization:
     """Stages 1-3 of one frame: references, backbone output and motion-averaging result (the pose
     in W, its translation at the rays' scale); ``reason`` is a lost reason, "" when localized;
     ``retrieved``: the first round's references; ``source``: tracking or global; ``other``: the
     references and backbone output of the round that lost (None: one round), which verification
-    checks the pose against too."""
+    checks the pose against too; ``similarity`` (M,): retrieval's scores of the database images;
+    ``guide``: the camera pose the backbone's pairs were guided by."""
 
     references: NDArray[np.int64]
     backbone: BackboneOutput | None = None
@@ -248,6 +247,8 @@ class _Localization:
     retrieved: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     source: str = "global"
     other: tuple[NDArray[np.int64], BackboneOutput] | None = None
+    similarity: NDArray[np.float64] | None = None
+    guide: NDArray[np.float64] | None = None
 
     @property
     def ok(self) -> bool:
@@ -255,7 +256,7 @@ class _Localization:
 
 
 @dataclass(frozen=True)
-class _MetricPose:
+class MetricPose:
     """Stage 4 of one frame: the metric ``T_wc``, its scale (metres per backbone unit), the ground
     peak it came from and the anchored floor height (nan before the anchor is set); ``anchor``: the
     provisional anchor this pose set (the perceiver had none), kept only if the pose is verified."""
@@ -267,7 +268,7 @@ class _MetricPose:
     anchor: GroundAnchor | None = None
 
 
-class _Clock:
+class Clock:
     """Wall seconds per stage (:data:`TIMING_KEYS`), the process CPU seconds per stage (``<stage>_cpu``,
     all threads) and the CPU seconds of one ``perceive`` call (``cpu``); steps inside a stage are
     ``<stage>.<step>`` (and ``<stage>.<step>_cpu``), summed over the call (e.g. both backbone rounds)."""
@@ -332,6 +333,11 @@ class Perceiver:
         ``anchor`` (e.g. one initialised by another perceiver of the same sequence)."""
         self.map = self.database.new_map(self.config.occupancy)
         self.anchor = copy.deepcopy(anchor) if anchor is not None else GroundAnchor(self.config.scale)
+        # Floors a pose's height is checked against, until poses refute them (_refutes_floor): the
+        # map's (before the anchor) and an anchor no pose of another place has confirmed yet.
+        self._floor_votes: list[NDArray[np.float64]] = []
+        self._map_floor_refuted = False
+        self._anchored_by: list[NDArray[np.float64]] = []  # the poses that set an unconfirmed anchor
 
     @property
     def initialized(self) -> bool:
@@ -357,14 +363,17 @@ class Perceiver:
             raise ValueError(f"got {len(priv)} privileged entries for {len(images)} images")
         observations = []
         for rgb, p in zip(images, priv, strict=True):
-            loc = self._localize(rgb, p, _Clock())
+            frame = Frame(np.asarray(rgb), p, None, None, None, Clock())
+            loc = self._localize(frame)
+            loc = second_round(self, frame, loc) or loc
             if loc.ok and not implausible_mount(loc.motion.T_wq, self._map_camera_z(), self.config.verify):
                 observations.append((loc.motion.T_wq, None))
         if observations:
             self.anchor.initialize(observations, self.config.camera_height)
+            self._anchored_by = [T for T, _ in observations]
         results = [self.perceive(rgb, p) for rgb, p in zip(images, priv, strict=True)]
         if not any(r.localized for r in results):
-            self.anchor = GroundAnchor(self.config.scale)
+            self.anchor, self._anchored_by = GroundAnchor(self.config.scale), []
         return results
 
     def perceive(
@@ -388,32 +397,23 @@ class Perceiver:
         (:meth:`~vgpnav_env.perception.state.EKFState.prior`); unlike ``gate`` it rejects nothing,
         a pose inside it needs less from the images (:func:`verify_pose`).
         ``fuse=False``: the caller fuses the frame later if it trusts it (:meth:`fuse`).
-        A frame lost with a ``prior`` gets two more chances, both verified by the images with it: a
-        global attempt (no ``predicted``) a second one with references around the prior's pose
-        (:meth:`_prior_camera`), a tracked one without database cameras near ``predicted`` a global
-        one; then a pose placed inside the prior (:meth:`_place_on_prior`, marked
-        :attr:`PerceptionResult.prior_placed`).
+
+        Stages 1-4 and verification run in :meth:`attempt`; a frame they do not place verified gets
+        the recovery strategies of :data:`~vgpnav_env.perception.recovery.RECOVERY` in order (their
+        :attr:`~vgpnav_env.perception.recovery.Phase.POSE` ones inside :meth:`attempt`); then stage
+        5 maps a localized frame.
         """
-        clock = _Clock()
-        result, points_w = self._attempt(rgb, privileged, gate, clock, predicted, prior)
-        lost = [result] if prior is not None and result.reason != "inconsistent motion" else []
-        if lost and not result.localized and self.anchor.initialized:
-            # Global references lost: those around the prior's pose; none near the predicted pose:
-            # global ones (a tracked attempt that ran its backbone gets no second one).
-            around = self._prior_camera(prior) if predicted is None else None
-            if predicted is None or result.backbone is None:
-                again, again_points = self._attempt(rgb, privileged, gate, clock, around, prior)
-                if again.localized or again.backbone is not None:
-                    result, points_w = again, again_points
-                    lost = [again, *lost] if again.reason != "inconsistent motion" else []
-        for attempt in lost if not result.localized else []:
-            with clock.stage("verification"):
-                placed = self._place_on_prior(attempt, prior, gate)
-            if placed is not None:
-                result, points_w = placed
-                break
+        clock = Clock()
+        frame = Frame(np.asarray(rgb), privileged, gate, predicted, prior, clock)
+        first = self.attempt(frame, predicted)  # stages 1-4, verification
+        lost = (first,) if prior is not None and first.result.reason != LostReason.INCONSISTENT_MOTION else ()
+        outcome = Outcome(first, lost)
+        for strategy in RECOVERY:
+            if strategy.phase is Phase.RESULT:
+                outcome = strategy.run(self, frame, outcome) or outcome
+        result, points_w = outcome.attempt.result, outcome.attempt.points_w
         if result.localized:
-            with clock.stage("occupancy"):
+            with clock.stage("occupancy"):  # stage 5
                 posed = self._posed_points(rgb, result, points_w, clock)
             if posed is not None:
                 result, points_w = replace(result, points_w=posed.astype(np.float32)), posed
@@ -423,7 +423,7 @@ class Perceiver:
         return replace(result, timings=clock.stop())
 
     def _posed_points(
-        self, rgb: NDArray[np.uint8], result: PerceptionResult, points_w: NDArray[np.float64], clock: _Clock
+        self, rgb: NDArray[np.uint8], result: PerceptionResult, points_w: NDArray[np.float64], clock: Clock
     ) -> NDArray[np.float64] | None:
         """The localized frame's metric points from the depth swept again at its pose
         (:mod:`~vgpnav_env.perception.posed_depth`, ``config.depth``) against the classical
@@ -482,64 +482,53 @@ class Perceiver:
             protect_free=occ.protect_free,
         )
 
-    def _attempt(
-        self,
-        rgb: NDArray[np.uint8],
-        privileged: Privileged | None,
-        gate: PoseGate | None,
-        clock: _Clock,
-        predicted: NDArray[np.float64] | None,
-        prior: PoseGate | None = None,
-    ) -> tuple[PerceptionResult, NDArray[np.float64] | None]:
-        """Stages 1-4 and verification of one frame (not fused: ``classes`` None) and its metric
-        points (None when lost); references around ``predicted`` (None: global retrieval); a
-        tracking attempt without near cameras is lost."""
+    def attempt(self, frame: Frame, predicted: NDArray[np.float64] | None) -> Attempt:
+        """Stages 1-4 and verification of one frame (not fused: ``classes`` None), with the
+        :attr:`~vgpnav_env.perception.recovery.Phase.POSE` recovery strategies after stage 3;
+        references around ``predicted`` (None: global retrieval; a tracking attempt without near
+        cameras is lost)."""
+        clock, prior, gate = frame.clock, frame.prior, frame.gate
         guide = predicted if prior is not None else None  # a confident prediction guides the pairs
-        loc = self._localize(rgb, privileged, clock, predicted, guide)  # stages 1-3
+        loc = self._localize(frame, predicted, guide)  # stages 1-3
+        for strategy in RECOVERY:
+            if strategy.phase is Phase.POSE:
+                loc = strategy.run(self, frame, loc) or loc
         if not loc.ok:
-            loc = self._prior_consensus(loc, clock, prior)
-        if not loc.ok:
-            loc = self._single_pair_fallback(loc, clock)
-        if not loc.ok:
-            return _lost(loc, clock), None
+            return Attempt(_lost(loc, clock), None, loc)
         with clock.stage("scale_recovery"):  # stage 4
             loc, pose = self._recover_scale(loc, gate)
-            points_w = self._points(loc, pose.T_wc, pose.scale) if loc.ok else None
+            points_w = self.points(loc, pose.T_wc, pose.scale) if loc.ok else None
         if not loc.ok:
-            return _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground), None
+            lost = _lost(loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground)
+            return Attempt(lost, None, loc, pose)
+        anchor = self.anchor
         with clock.stage("verification"):
-            T_wc, verdict = self._verify(loc, pose, prior)
+            T_wc, verdict = self.verify(loc, pose, prior)
         rival = T_wc is not pose.T_wc
+        if self.anchor is not anchor:  # the pose refuted the anchored floor: its scale anew
+            with clock.stage("scale_recovery"):
+                loc, rescaled = self._recover_scale(loc, gate)
+                pose = replace(rescaled, T_wc=pose.T_wc)
+                points_w = self.points(loc, pose.T_wc, pose.scale) if loc.ok else None
         if rival:  # the prior picked a rival: its pose and points
             pose = replace(pose, T_wc=T_wc)
-            points_w = self._points(loc, T_wc, pose.scale)
+            points_w = self.points(loc, T_wc, pose.scale)
             picked = "the prior picked a rival pose"
             loc = replace(loc, detail=f"{picked} ({loc.detail})" if loc.detail else picked)
         if verdict.ok and prior is not None and not prior.admits(pose.T_wc):
             distance, yaw = prior.deviation(pose.T_wc)
             detail = f"verified pose {distance:.2f} m / {np.degrees(yaw):.0f} deg from the prior's centre"
-            loc = replace(loc, reason="inconsistent motion", detail=detail)
-            lost = _lost(
-                loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
-            )
-            return lost, None
-        if verdict.ok and pose.anchor is not None and not self.anchor.initialized:
-            self.anchor = pose.anchor  # the first verified pose anchors the ground
-        if not verdict.ok:
-            loc = replace(
-                loc,
-                reason=verdict.reason,
-                detail=f"{verdict.detail} ({loc.detail})" if loc.detail else verdict.detail,
-            )
-            lost = _lost(
-                loc, clock, T_wc=pose.T_wc, z_ground=pose.z_ground, ground=pose.ground, verdict=verdict
-            )
-            return lost, None
-        if not rival and pose.anchor is None and prior is not None:
-            with clock.stage("verification"):
-                slid = self._slide(loc, pose, prior, gate)
-            if slid is not None:
-                pose, verdict, points_w = slid
+            loc = replace(loc, reason=LostReason.INCONSISTENT_MOTION, detail=detail)
+        elif not verdict.ok:
+            detail = f"{verdict.detail} ({loc.detail})" if loc.detail else verdict.detail
+            loc = replace(loc, reason=verdict.reason, detail=detail)
+        if not loc.ok:
+            kw = {"T_wc": pose.T_wc, "z_ground": pose.z_ground, "ground": pose.ground, "verdict": verdict}
+            return Attempt(_lost(loc, clock, **kw), None, loc, pose, rival)
+        if pose.anchor is not None and not self.anchor.initialized:
+            self.anchor, self._anchored_by = pose.anchor, [pose.T_wc]  # the first verified pose anchors
+        elif self._anchored_by and all(self._distinct(pose.T_wc, T) for T in self._anchored_by):
+            self._anchored_by, self._floor_votes = [], []  # a pose of another place confirms the anchor
         result = PerceptionResult(
             status="localized",
             reason="",
@@ -561,36 +550,13 @@ class Perceiver:
             confidence=verdict.confidence,
             source=loc.source,
         )
-        return result, points_w
+        return Attempt(result, points_w, loc, pose, rival)
 
-    def _slide(
-        self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None, gate: PoseGate | None
-    ) -> tuple[_MetricPose, Verdict, NDArray[np.float64]] | None:
-        """The verified ``pose`` moved along the ray its position rests on (:func:`slide_on_ray`;
-        the caller tries it only inside the EKF's ``prior``, which bounds the move),
-        its scale corrected by the same factor, with its verdict and metric points, when the images
-        verify it there (:meth:`_verify`, no rival taking its place) and the ``prior`` and the
-        ``gate`` admit it; else None."""
-        out = loc.backbone
-        T_wi = self.database.poses[loc.references]
-        moved = slide_on_ray(pose.T_wc, T_wi, out, loc.motion.weights, self.camera, self.config.verify)
-        if moved is None:
-            return None
-        T, factor = moved
-        if any(g is not None and not g.admits(T) for g in (prior, gate)):
-            return None
-        slid = replace(pose, T_wc=T, scale=replace(pose.scale, scale=pose.scale.scale * factor))
-        T_checked, verdict = self._verify(loc, slid, prior)
-        if T_checked is not T or not verdict.ok:
-            return None
-        return slid, verdict, self._points(loc, T, slid.scale)
-
-    def _verify(
-        self, loc: _Localization, pose: _MetricPose, prior: PoseGate | None = None
+    def verify(
+        self, loc: Localization, pose: MetricPose, prior: PoseGate | None = None
     ) -> tuple[NDArray[np.float64], Verdict]:
-        """:func:`verify_pose` of the metric pose against the frame's references and those of the
-        round that lost (:func:`pooled_pairs`), with the rival poses of the pairs it does not
-        explain, or in small part (:func:`rival_pairs`, :func:`rival_poses`): the pose and its
+        """:func:`~vgpnav_env.perception.verify.assess` of the metric pose against the frame's
+        references and those of the round that lost (:func:`pooled_pairs`): the pose and its
         verdict. With a ``prior`` that the pose is not confirmed inside, the rival the prior picks
         (:func:`prior_hypothesis`) replaces it when there is one."""
         refs, out = loc.references, loc.backbone
@@ -598,27 +564,61 @@ class Perceiver:
             refs, out = pooled_pairs(refs, out, *loc.other)
         T_wi = self.database.poses[refs]
         cfg = self.config
-        v = cfg.verify
-        # The pairs' own support (one epipolar count per pair) serves both rules that need it.
-        uses_own = v.rival_claim_ratio is not None or v.min_explained_confidence is not None
-        own = pair_support(T_wi, out, self.camera, v) if uses_own else None
-        support = reference_support(pose.T_wc, T_wi, out, self.camera, v)
-        support = rival_pairs(support, T_wi, out, self.camera, v, own)
-        rivals = rival_poses(pose.T_wc, T_wi, out, support, pose.scale.scale, cfg.averaging)
         camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
         map_z = self._map_camera_z()
-        if pose.anchor is not None and np.isfinite(map_z):
+        anchoring = pose.anchor is not None and np.isfinite(map_z) and not self._map_floor_refuted
+        if anchoring:
             camera_z = map_z  # the pose would anchor the ground: the map's floor checks it
-        verdict = verify_pose(
-            pose.T_wc, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own, prior=prior
-        )
-        if prior is None or (verdict.ok and prior.admits(pose.T_wc)):
-            return pose.T_wc, verdict
+
+        def verdict_at(z: float):
+            return assess(
+                pose.T_wc, T_wi, out, self.camera, cfg.verify, scale=pose.scale.scale,
+                averaging=cfg.averaging, camera_z=z, prior=prior,
+            )  # fmt: skip
+
+        a = verdict_at(camera_z)
+        unconfirmed = pose.anchor is None and bool(self._anchored_by)
+        if (anchoring or unconfirmed) and a.verdict.check == VerifyCheck.MOUNT:
+            own = verdict_at(float(pose.T_wc[2, 3]))  # the mount's roll and pitch only
+            # The map's floor stands on the whole database: it takes more poses to refute.
+            needed = 3 if anchoring else len(self._anchored_by) + 1
+            if own.verdict.ok and self._refutes_floor(pose.T_wc, needed):
+                a, camera_z = own, float(pose.T_wc[2, 3])
+                if anchoring:
+                    self._map_floor_refuted = True
+                else:  # the pose anchors the ground anew
+                    self.anchor = GroundAnchor(cfg.scale)
+                    self.anchor.initialize([(pose.T_wc, None)], cfg.camera_height)
+                    self._anchored_by = [pose.T_wc]
+        if prior is None or (a.verdict.ok and prior.admits(pose.T_wc)):
+            return pose.T_wc, a.verdict
         picked = prior_hypothesis(
-            pose.T_wc, rivals, T_wi, out, self.camera, v, prior,
-            scale=pose.scale.scale, averaging=cfg.averaging, camera_z=camera_z, own=own,
+            pose.T_wc, a.rivals, T_wi, out, self.camera, cfg.verify, prior,
+            scale=pose.scale.scale, averaging=cfg.averaging, camera_z=camera_z, own=a.own,
         )  # fmt: skip
-        return (pose.T_wc, verdict) if picked is None else picked
+        return (pose.T_wc, a.verdict) if picked is None else picked
+
+    def _refutes_floor(self, T_wc: NDArray[np.float64], needed: int) -> bool:
+        """Count ``T_wc``, a pose the images verify but for its camera height against a floor (the
+        map's before the ground is anchored, or an anchor no pose of another place has confirmed),
+        as a vote against that floor: refuted once ``needed`` such poses -- ``T_wc`` and others of
+        another place (:meth:`_distinct`) -- agree on the camera height within
+        ``pose_height_tolerance``. A wrong floor (a reconstruction's, or one anchored by a wrong
+        first pose) would otherwise reject every right pose after it, and the episode would never
+        localize."""
+        v = self.config.verify
+        tol = v.pose_height_tolerance if v.pose_height_tolerance is not None else np.inf
+        agree = [T for T in self._floor_votes if self._distinct(T, T_wc) and abs(T[2, 3] - T_wc[2, 3]) <= tol]
+        refuted = len(agree) + 1 >= needed
+        self._floor_votes = [] if refuted else [*self._floor_votes, np.asarray(T_wc, float).copy()]
+        return refuted
+
+    def _distinct(self, T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> bool:
+        """Whether two camera poses are distinct places: farther apart than ``rival_distance`` or
+        turned more than ``rival_angle_deg``."""
+        v = self.config.verify
+        far = np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > v.rival_distance
+        return bool(far or rotation_angle(T_a[:3, :3], T_b[:3, :3]) > np.deg2rad(v.rival_angle_deg))
 
     def _map_camera_z(self) -> float:
         """World height (metres) of a camera at the calibrated height above the floor the
@@ -629,22 +629,19 @@ class Perceiver:
 
     def _localize(
         self,
-        rgb: NDArray[np.uint8],
-        privileged: Privileged | None,
-        clock: _Clock,
+        frame: Frame,
         predicted: NDArray[np.float64] | None = None,
         guide: NDArray[np.float64] | None = None,
-    ) -> _Localization:
-        """Stages 1-3 (retrieval, backbone, motion averaging), with the second round of
-        :func:`~vgpnav_env.perception.verify.second_round_references` when the first is weak;
-        ``predicted``: references around that camera pose (tracking) instead of the whole database;
-        ``guide``: the camera pose the backbone's pairs expect (:meth:`_round`)."""
-        rgb = np.asarray(rgb)
+    ) -> Localization:
+        """Stages 1-3 (retrieval, backbone, motion averaging) of one round; ``predicted``:
+        references around that camera pose (tracking) instead of the whole database; ``guide``:
+        the camera pose the backbone's pairs expect (:meth:`round`)."""
+        rgb, clock = frame.rgb, frame.clock
         expected = (self.camera.height, self.camera.width, 3)
         if rgb.shape != expected or rgb.dtype != np.uint8:
             raise ValueError(f"query image must be uint8 with shape {expected}, got {rgb.dtype} {rgb.shape}")
         db, cfg = self.database, self.config
-        with clock.stage("retrieval"):
+        with clock.stage("retrieval"):  # stage 1
             sims = np.nan_to_num(db.index.similarity(rgb), nan=-1.0, posinf=-1.0, neginf=-1.0)
             if predicted is not None:
                 refs = tracked_references(sims, db.poses, predicted, self.camera, cfg.retrieval, cfg.tracking)
@@ -657,66 +654,36 @@ class Perceiver:
                 refs, source = select_references(sims, db.poses, cfg.retrieval), "global"
         if len(refs) == 0:
             detail = "empty database" if predicted is None else "no database camera near the predicted pose"
-            return _Localization(refs, reason="too few matches", detail=detail, source=source)
-        retrieved, other = refs, None
-        out, motion = self._round(rgb, refs, privileged, clock, guide)
-        if cfg.averaging.method == "weighted":
-            with clock.stage("retrieval"):
-                second = second_round_references(
-                    refs,
-                    out,
-                    motion,
-                    sims,
-                    db.poses,
-                    cfg.verify,
-                    k=cfg.retrieval.k,
-                    consensus_deg=cfg.averaging.consensus_deg,
-                    pair_scale=(lambda T: self._calibrated_scale(out, T)) if cfg.scale.enabled else None,
-                )
-            if len(second):
-                out2, motion2 = self._round(rgb, second, privileged, clock, guide)
-                logger.debug(
-                    "second round: %s ok=%s (%s) -> %s ok=%s (%s)",
-                    refs.tolist(),
-                    motion.ok,
-                    motion.reason,
-                    second.tolist(),
-                    motion2.ok,
-                    motion2.reason,
-                )
-                if round_rank(out2, motion2) > round_rank(out, motion):
-                    other = refs, out
-                    refs, out, motion = second, out2, motion2
-                else:
-                    other = second, out2
+            return Localization(refs, reason=LostReason.TOO_FEW_MATCHES, detail=detail, source=source)
+        loc = Localization(refs, retrieved=refs, source=source, similarity=sims, guide=guide)
+        return self.conclude(loc, *self.round(frame, refs, guide))  # stages 2-3
+
+    def conclude(self, loc: Localization, out: BackboneOutput, motion: MotionResult) -> Localization:
+        """``loc`` with the backbone output and motion averaging of its ``references``, lost when no
+        pair passed the backbone or motion averaging failed."""
         n_conf = int((out.confidence > 0).sum())
+        loc = replace(loc, backbone=out, motion=motion, n_confident_pairs=n_conf, reason="", detail="")
         if n_conf == 0:
             detail = f"no reference pair passed the backbone (matches {out.n_matches.tolist()})"
-            return _Localization(
-                refs, out, reason="too few matches", detail=detail, retrieved=retrieved, source=source
-            )
+            return replace(loc, reason=LostReason.TOO_FEW_MATCHES, detail=detail)
         if not motion.ok:
-            reason = "too few matches" if motion.reason == "too few references" else "no consensus"
-            return _Localization(refs, out, motion, n_conf, reason, motion.reason, retrieved, source, other)
-        return _Localization(refs, out, motion, n_conf, retrieved=retrieved, source=source, other=other)
+            few = motion.reason == "too few references"
+            reason = LostReason.TOO_FEW_MATCHES if few else LostReason.NO_CONSENSUS
+            return replace(loc, reason=reason, detail=motion.reason)
+        return loc
 
-    def _round(
-        self,
-        rgb: NDArray[np.uint8],
-        refs: NDArray[np.int64],
-        privileged: Privileged | None,
-        clock: _Clock,
-        guide: NDArray[np.float64] | None = None,
+    def round(
+        self, frame: Frame, refs: NDArray[np.int64], guide: NDArray[np.float64] | None = None
     ) -> tuple[BackboneOutput, MotionResult]:
         """Stages 2-3 over ``refs``: backbone, then motion averaging whose pose must pass the
         camera-height check. ``guide``: a camera pose ``T_wc`` the caller confidently predicts; the
         backbone gets the relative poses it implies (``expected_T_qi``) to guide its pairs."""
-        db = self.database
+        db, clock, privileged = self.database, frame.clock, frame.privileged
         with clock.stage("backbone"):
             if privileged is not None:
                 privileged = replace(privileged, T_wi=db.poses[refs], reference_depths=None)
             out = self.backbone(
-                rgb,
+                frame.rgb,
                 [db.images[i] for i in refs],
                 self.camera,
                 privileged=privileged,
@@ -732,134 +699,13 @@ class Perceiver:
             motion = check_height(motion, self.anchor, cfg.camera_height, cfg.verify)
         return out, motion
 
-    def _prior_consensus(self, loc: _Localization, clock: _Clock, prior: PoseGate | None) -> _Localization:
-        """``loc`` re-averaged over its pairs that agree with the ``prior`` (:func:`prior_pairs`), at
-        least two, when motion averaging over all of them failed; else unchanged."""
-        if prior is None or loc.motion is None or loc.backbone is None:
-            return loc
-        cfg, out = self.config, loc.backbone
-        T_wi = self.database.poses[loc.references]
-        with clock.stage("motion_averaging"):
-            agree = prior_pairs(T_wi, out, prior)
-            if agree.sum() < 2:
-                return loc
-            confidence = np.where(agree, out.confidence, 0.0)
-            motion = average_motion(T_wi, out.T_qi, confidence, cfg.averaging, scale_valid=out.scale_valid)
-            motion = check_height(motion, self.anchor, cfg.camera_height, cfg.verify)
-        if not motion.ok:
-            return loc
-        return replace(
-            loc, motion=motion, reason="", detail=f"pairs agreeing with the prior after: {loc.detail}"
-        )
-
-    def _prior_camera(self, prior: PoseGate) -> NDArray[np.float64]:
+    def prior_camera(self, prior: PoseGate) -> NDArray[np.float64]:
         """The camera pose ``T_wc`` of a robot at the ``prior``'s planar pose: the calibrated camera
         height above the anchored ground, the database cameras' median pitch (the same mount)."""
         pitch = float(np.median([camera_yaw_pitch(T)[1] for T in self.database.poses]))
         return camera_T_wc(prior.pose, float(self.anchor.z_ground) + self.config.camera_height, pitch)
 
-    def _place_on_prior(
-        self, lost: PerceptionResult, prior: PoseGate, gate: PoseGate | None
-    ) -> tuple[PerceptionResult, NDArray[np.float64]] | None:
-        """A ``lost`` frame placed inside the ``prior`` (:func:`prior_poses`) when :func:`verify_pose`
-        with the prior confirms that pose with at least ``min_supporting_references`` (and 2)
-        references that explain :func:`prior_support_floor` matches together: the strongest such
-        pose, localized and marked :attr:`PerceptionResult.prior_placed`, and its metric points;
-        else None. Its scale is the ground's, checked against the supporting pairs' (their distance
-        to the pose over their backbone translation, median); without a ground peak the pose comes
-        with no points."""
-        out, refs = lost.backbone, lost.references
-        if out is None or out.matches is None or not self.anchor.initialized:
-            return None  # without matches a reference's support is a 10 deg test: no placement
-        if not (out.confidence > 0).any():
-            return None
-        cfg, v = self.config, self.config.verify
-        T_wi = self.database.poses[refs]
-        camera_z = float(self.anchor.z_ground) + cfg.camera_height
-        hypotheses = prior_poses(T_wi, out, self.camera, prior, camera_z, v)
-        if not hypotheses:
-            return None
-        uses_own = v.rival_claim_ratio is not None or v.min_explained_confidence is not None
-        own = pair_support(T_wi, out, self.camera, v) if uses_own else None
-        baseline = np.linalg.norm(out.T_iq[:, :3, 3], axis=1)
-        best = None
-        if out.matches is not None:
-            refined = [
-                refine_pose(T, T_wi, out.matches, self.camera, v, max_shift=prior.max_distance)
-                for T in hypotheses
-            ]
-            hypotheses += [T for T in refined if prior.admits(T)]
-        for T in hypotheses:
-            distance = np.linalg.norm(T_wi[:, :3, 3] - T[:3, 3], axis=1)
-            support = reference_support(T, T_wi, out, self.camera, v)
-            usable = (
-                (support >= v.min_support_matches) & out.scale_valid & (baseline > 0) & (out.confidence > 0)
-            )
-            if not usable.any():
-                continue
-            pair_scale = float(np.median(distance[usable] / baseline[usable]))
-            support = rival_pairs(support, T_wi, out, self.camera, v, own)
-            rivals = rival_poses(T, T_wi, out, support, pair_scale, cfg.averaging)
-            verdict = verify_pose(
-                T, T_wi, out, self.camera, v, rivals=rivals, camera_z=camera_z, own=own, prior=prior
-            )
-            enough = verdict.n_supporting >= max(2, v.min_supporting_references)
-            if not (verdict.ok and enough) or (best is not None and verdict.strength <= best[3].strength):
-                continue
-            # The prior says where, not whether: the images must give the pose its support, the more
-            # the wider the prior (prior_support_floor; a prior 1 m off placed a pose 0.76 m off with
-            # two references of 31 and 37 matches). The verdict inside the prior has already waived
-            # rivals outside it, the share and a wall's plane (its aliases lie elsewhere).
-            if verdict.strength < prior_support_floor(prior, v):
-                continue
-            best = T, pair_scale, float(out.confidence[usable].sum()), verdict
-        if best is None:
-            return None
-        T, pair_scale, weight, verdict = best
-        if gate is not None and not gate.admits(T):
-            return None
-        ground = self._ground(out, T, self.anchor.expected_height_b(T, pair_scale))
-        scale = self.anchor.scale_for(T, ground, fallback_scale=pair_scale)
-        scale = check_scale(scale, pair_scale, v, weight, ground)
-        scale = plausible_scale(scale, self._median_depth(out), v)
-        if not scale.ok:
-            return None
-        # A placed pose without the ground's scale has no metric depth to map (the supporting
-        # pairs' scale puts its points decimetres to metres off).
-        ground_scale = scale.source == "ground"
-        points_w = self._metric_points(out, T, scale.scale) if ground_scale else np.zeros((0, 3))
-        detail = f"placed inside the prior after {lost.reason}: {lost.detail}"
-        if not ground_scale:
-            detail = f"{detail}; no ground scale, no points"
-        result = replace(
-            lost,
-            status="localized",
-            reason="",
-            T_wc=T,
-            points_w=points_w.astype(np.float32),
-            scale=scale.scale,
-            scale_source=scale.source,
-            z_ground=float(self.anchor.z_ground),
-            ground=ground,
-            detail=detail,
-            verdict=replace(verdict, by_prior=True),
-            confidence=verdict.confidence,
-        )
-        return result, points_w
-
-    def _single_pair_fallback(self, loc: _Localization, clock: _Clock) -> _Localization:
-        """``loc`` placed by its most confident pair (:func:`single_pair_fallback`), else unchanged."""
-        if loc.motion is None or loc.backbone is None or not self.config.scale.enabled:
-            return loc
-        with clock.stage("motion_averaging"):
-            motion = single_pair_fallback(
-                loc.references, loc.backbone, self.database.poses, self.config.averaging, self.config.verify
-            )
-        if motion is None:
-            return loc
-        return replace(loc, motion=motion, reason="", detail=f"single-pair fallback after: {loc.detail}")
-
-    def _recover_scale(self, loc: _Localization, gate: PoseGate | None) -> tuple[_Localization, _MetricPose]:
+    def _recover_scale(self, loc: Localization, gate: PoseGate | None) -> tuple[Localization, MetricPose]:
         """Stage 4: the metric pose and scale of a localized frame, and ``loc`` (lost when the pose
         is outside ``gate``, its scale implausible, or a single pair's pose has no ground scale; a
         pose the rays placed stands without any scale: scale "none", no points). Without an anchor,
@@ -874,7 +720,7 @@ class Perceiver:
                 f"(gate {gate.max_distance:.2f} m / {np.degrees(gate.max_yaw):.0f} deg)"
             )
             none = ScaleEstimate(float("nan"), "none")
-            return replace(loc, reason="inconsistent motion", detail=detail), _MetricPose(T_wc, none)
+            return replace(loc, reason="inconsistent motion", detail=detail), MetricPose(T_wc, none)
         anchor, provisional = self.anchor, None
         if not anchor.initialized and (scale is None or scale.ok):
             anchor = provisional = GroundAnchor(self.config.scale)
@@ -882,9 +728,9 @@ class Perceiver:
         if scale is None:
             scale, ground = self._ground_scale(loc, T_wc, anchor)
         found = scale
-        scale = plausible_scale(scale, self._median_depth(loc.backbone), self.config.verify)
+        scale = plausible_scale(scale, self.median_depth(loc.backbone), self.config.verify)
         z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")
-        pose = _MetricPose(T_wc, scale, ground, z_ground, provisional)
+        pose = MetricPose(T_wc, scale, ground, z_ground, provisional)
         if not found.ok and not single:
             # The rays placed the pose in metres (the references' known poses); only the depth has no
             # scale: verification judges the pose, and it maps nothing.
@@ -900,12 +746,12 @@ class Perceiver:
             return replace(loc, reason="no ground", detail=detail), pose
         return loc, pose
 
-    def _place_single(self, loc: _Localization) -> tuple[NDArray[np.float64], ScaleEstimate, GroundEstimate]:
+    def _place_single(self, loc: Localization) -> tuple[NDArray[np.float64], ScaleEstimate, GroundEstimate]:
         """Stage 4 for a single-reference pose: the ground scale at the calibrated camera height
         places the camera along the pair's ray (the single-view baseline); scale "none" when no
         ground is seen (the pose stays at backbone scale)."""
         out, motion = loc.backbone, loc.motion
-        ground = self._ground(out, motion.T_wq, None)
+        ground = self.ground(out, motion.T_wq, None)
         if not ground.found:
             return motion.T_wq, ScaleEstimate(float("nan"), "none"), ground
         scale = self.config.camera_height / -ground.height_b
@@ -915,7 +761,7 @@ class Perceiver:
         return T_wc, ScaleEstimate(scale, "ground"), ground
 
     def _ground_scale(
-        self, loc: _Localization, T_wc: NDArray[np.float64], anchor: GroundAnchor
+        self, loc: Localization, T_wc: NDArray[np.float64], anchor: GroundAnchor
     ) -> tuple[ScaleEstimate, GroundEstimate]:
         """Stage 4: the ground peak near the height the rays' scale predicts (else the dominant peak),
         scaled to the camera height above the ``anchor``'s ground, checked against the rays' scale."""
@@ -923,22 +769,22 @@ class Perceiver:
         prior = None
         if anchor.initialized and self.config.scale.enabled:
             prior = anchor.expected_height_b(T_wc, ray_scale)
-        ground = self._ground(out, T_wc, prior)
+        ground = self.ground(out, T_wc, prior)
         if prior is not None and not ground.found:
             # Nothing near the ray-implied height: the rays' scale may be off (a weak pair);
             # the dominant ground peak counts if it passes the scale check against them.
-            ground = self._ground(out, T_wc, None)
+            ground = self.ground(out, T_wc, None)
         scale = anchor.scale_for(T_wc, ground, fallback_scale=ray_scale)
         ray_weight = float(loc.motion.weights.sum())
         return check_scale(scale, ray_scale, self.config.verify, ray_weight, ground), ground
 
-    def _calibrated_scale(self, out: BackboneOutput, T_wc: NDArray[np.float64]) -> float | None:
+    def calibrated_scale(self, out: BackboneOutput, T_wc: NDArray[np.float64]) -> float | None:
         """Metres per backbone unit that put the ground peak at the calibrated camera height below
         a camera oriented as ``T_wc`` (None when no ground is seen)."""
-        ground = self._ground(out, T_wc, None)
+        ground = self.ground(out, T_wc, None)
         return self.config.camera_height / -ground.height_b if ground.found else None
 
-    def _ground(
+    def ground(
         self, out: BackboneOutput, T_wc: NDArray[np.float64], prior_height_b: float | None
     ) -> GroundEstimate:
         """Ground peak (backbone units) of the whole reconstruction: confident query pixels plus the
@@ -958,19 +804,19 @@ class Perceiver:
         )
         return ground_peak(points, T_wc[:3, :3], w, self.config.scale, prior_height_b=prior_height_b)
 
-    def _median_depth(self, out: BackboneOutput) -> float:
+    def median_depth(self, out: BackboneOutput) -> float:
         """Median query depth (backbone units) of the confident pixels (nan when none)."""
         depth = out.query_depth[(out.query_depth_confidence >= self.config.occupancy.min_confidence)]
         depth = depth[np.isfinite(depth) & (depth > 0)]
         return float(np.median(depth)) if len(depth) else float("nan")
 
-    def _points(
-        self, loc: _Localization, T_wc: NDArray[np.float64], scale: ScaleEstimate
+    def points(
+        self, loc: Localization, T_wc: NDArray[np.float64], scale: ScaleEstimate
     ) -> NDArray[np.float64]:
         """The metric points of a localized frame at ``T_wc``: none without a ``scale``."""
-        return self._metric_points(loc.backbone, T_wc, scale.scale) if scale.ok else np.zeros((0, 3))
+        return self.metric_points(loc.backbone, T_wc, scale.scale) if scale.ok else np.zeros((0, 3))
 
-    def _metric_points(
+    def metric_points(
         self, out: BackboneOutput, T_wc: NDArray[np.float64], scale: float
     ) -> NDArray[np.float64]:
         """Stage 5's input: the confident query points at ``scale`` within ``max_depth``, in W."""
@@ -986,7 +832,7 @@ class Perceiver:
         return recover_metric_points(points_q, T_wc, scale)
 
 
-def _lost(loc: _Localization, clock: _Clock, **kw) -> PerceptionResult:
+def _lost(loc: Localization, clock: Clock, **kw) -> PerceptionResult:
     """The lost result of ``loc`` (its reason and detail); ``kw``: the pose and ground found before
     the frame was rejected, if any."""
     return PerceptionResult(

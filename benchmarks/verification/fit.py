@@ -1,0 +1,149 @@
+"""Fit the calibrated verification model (``vgpnav_env.perception.verify.model``) on logged frames.
+
+Data: the frame records of ``vgpnav eval localization`` reports on the TUNING scenes only
+(``vgpnav_env/tasks/splits.yaml``), temporal mode, all query frames::
+
+    vgpnav eval localization home hospital home:1 home:2 home:3 hospital:1 hospital:2 hospital:3 \\
+        --backbone classical --queries 0 --perception-mode temporal --k 10 --workers 1 --out OUT
+
+Then, from this directory's parent::
+
+    python benchmarks/verification/fit.py collect OUT -o benchmarks/verification/frames.csv
+    python benchmarks/verification/fit.py fit benchmarks/verification/frames.csv \\
+        -o vgpnav_env/perception/data/verify_model.json
+
+``collect`` keeps every frame whose candidate pose has evidence and an error (not mount rejections:
+the mount stays a rule); a row's label is "right" (within 5 cm / 5 deg). ``fit`` is deterministic
+(L-BFGS from zero, :func:`~vgpnav_env.perception.verify.model.fit_model`) and prints the training
+AUC and, per scene, what the model would accept at ``VerifyConfig.accept_probability`` against
+what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every coefficient agrees
+with MODEL's within ``--tolerance``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, fit_model
+from vgpnav_env.perception.verify.model import FEATURES
+
+#: Right: within this (metres, degrees) of the truth, the recall threshold the model predicts.
+RIGHT = (0.05, 5.0)
+#: The L2 penalty on the standardised coefficients.
+L2 = 1.0
+
+
+def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
+    """The rows (scene, frame, status, gross, right, features) of every ``report.json`` below
+    ``report_dirs``."""
+    rows = []
+    for root in report_dirs:
+        for path in sorted(Path(root).rglob("report.json")):
+            report = json.loads(path.read_text())
+            scene = path.parent.name
+            for r in report.get("records", []):
+                ev = r.get("evidence") or {}
+                t, deg = r["candidate_translation_m"], r["candidate_rotation_deg"]
+                if not ev or r.get("gate") == "unverified: mount" or t is None or deg is None:
+                    continue
+                if not (np.isfinite(t) and np.isfinite(deg)):
+                    continue
+                right = t <= RIGHT[0] and deg <= RIGHT[1]
+                gross = t > 0.5 or deg > 10.0
+                row = {"scene": scene, "frame": r["frame"], "status": r["status"], "right": int(right)}
+                row |= {"gross": int(gross)} | {f: float(ev[f]) for f in FEATURES}
+                rows.append(row)
+    return rows
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def fit(rows: list[dict[str, str]]) -> VerificationModel:
+    X = np.array([[float(r[f]) for f in FEATURES] for r in rows])
+    y = np.array([int(r["right"]) for r in rows], bool)
+    scenes = sorted({r["scene"] for r in rows})
+    return fit_model(X, y, FEATURES, l2=L2, meta={"scenes": scenes, "right_m_deg": list(RIGHT)})
+
+
+def auc(score: np.ndarray, positive: np.ndarray) -> float:
+    """Probability that a positive scores above a negative (ties half); nan when a class is empty."""
+    a, b = score[positive][:, None], score[~positive][None, :]
+    if a.size == 0 or b.size == 0:
+        return float("nan")
+    return float(((a > b).sum() + 0.5 * (a == b).sum()) / (a.size * b.size))
+
+
+def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
+    X = np.array([[float(r[f]) for f in FEATURES] for r in rows])
+    p = model.probabilities(X)
+    right = np.array([int(r["right"]) for r in rows], bool)
+    gross = np.array([int(r["gross"]) for r in rows], bool)
+    ruled = np.array([r["status"] == "localized" for r in rows], bool)
+    accept = p >= VerifyConfig().accept_probability
+    lines = [
+        f"rows {len(rows)}, right {int(right.sum())}, gross {int(gross.sum())}; "
+        f"AUC right vs not {auc(p, right):.3f}, "
+        f"right vs gross {auc(p[right | gross], right[right | gross]):.3f}",
+        "| scene | rows | rules: accepted / gross / right | model: accepted / gross / right |",
+        "|---|---|---|---|",
+    ]
+    for scene in sorted({r["scene"] for r in rows}):
+        m = np.array([r["scene"] == scene for r in rows])
+        cells = [
+            f"{int((a & m).sum())} / {int((a & m & gross).sum())} / {int((a & m & right).sum())}"
+            for a in (ruled, accept)
+        ]
+        lines.append(f"| {scene} | {int(m.sum())} | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    c = sub.add_parser("collect", help="report directories -> frames CSV")
+    c.add_argument("reports", nargs="+", type=Path)
+    c.add_argument("-o", "--out", type=Path, required=True)
+    f = sub.add_parser("fit", help="frames CSV -> model JSON")
+    f.add_argument("frames", type=Path)
+    f.add_argument("-o", "--out", type=Path)
+    f.add_argument("--check", type=Path, metavar="MODEL", help="compare with MODEL instead of writing")
+    f.add_argument("--tolerance", type=float, default=1e-4)
+    args = parser.parse_args(argv)
+    if args.command == "collect":
+        rows = collect(args.reports)
+        if not rows:
+            print("no frames with evidence under the given directories", file=sys.stderr)
+            return 2
+        with open(args.out, "w", newline="") as out:
+            writer = csv.DictWriter(out, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"{len(rows)} frames -> {args.out}")
+        return 0
+    rows = read_rows(args.frames)
+    model = fit(rows)
+    print(summary(model, rows))
+    if args.check is not None:
+        stored = VerificationModel.load(args.check)
+        got = np.r_[model.intercept, model.coef]
+        want = np.r_[stored.intercept, stored.coef]
+        worst = float(np.abs(got - want).max())
+        print(f"largest coefficient difference {worst:.2e} (tolerance {args.tolerance:g})")
+        return 0 if worst <= args.tolerance and model.features == stored.features else 1
+    if args.out is not None:
+        model.save(args.out)
+        print(f"model -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

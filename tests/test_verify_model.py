@@ -1,0 +1,70 @@
+"""The calibrated verification model: its fit, its reproduction from the committed script and data,
+and its decision."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, default_model, fit_model
+from vgpnav_env.perception.verify.model import FEATURES
+
+ROOT = Path(__file__).resolve().parents[1]
+FIT = ROOT / "benchmarks" / "verification" / "fit.py"
+DATA = ROOT / "benchmarks" / "verification" / "frames.csv"
+#: The stored coefficients must come back from the script and data to this (the fit is deterministic;
+#: the tolerance covers other BLAS / SciPy builds).
+TOLERANCE = 1e-3
+
+
+def _fit_script():
+    spec = importlib.util.spec_from_file_location("verification_fit", FIT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_installed_model_reproduces_from_its_script_and_data(capsys: pytest.CaptureFixture) -> None:
+    model = default_model()
+    assert model is not None and model.features == FEATURES
+    stored = ROOT / "vgpnav_env" / "perception" / "data" / "verify_model.json"
+    assert _fit_script().main(["fit", str(DATA), "--check", str(stored), "--tolerance", str(TOLERANCE)]) == 0
+    assert "largest coefficient difference" in capsys.readouterr().out
+
+
+def test_fit_recovers_a_known_logistic_model() -> None:
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 1, (4000, 2))
+    w = np.array([6.0, -3.0])
+    y = rng.uniform(size=4000) < 1 / (1 + np.exp(-(X @ w - 1.5)))
+    model = fit_model(X, y, ("a", "b"), l2=1e-6)
+    recovered = np.array(model.coef) / np.array(model.scale)  # back to the raw features
+    np.testing.assert_allclose(recovered, w, rtol=0.15)
+    p = model.probabilities(np.array([[0.9, 0.1], [0.1, 0.9]]))
+    assert p[0] > 0.9 and p[1] < 0.1
+    with pytest.raises(ValueError, match="right and wrong"):
+        fit_model(X, np.ones(4000, bool), ("a", "b"))
+
+
+def test_the_model_round_trips_through_json(tmp_path: Path) -> None:
+    model = fit_model(np.array([[0.0], [1.0], [0.2], [0.8]]), np.array([0, 1, 0, 1], bool), ("a",))
+    model.save(tmp_path / "m.json")
+    again = VerificationModel.load(tmp_path / "m.json")
+    assert again == model
+
+
+def test_more_explained_evidence_is_more_probably_right() -> None:
+    """The installed model ranks a pose that explains most matches, off its planes, with no rival,
+    above one that explains few, on one plane, with a rival as strong; it accepts the first only
+    (``accept_probability``)."""
+    model = default_model()
+    good = dict(match_share=0.7, explained_share=0.95, agree_share=0.8, rival_margin=1.0,
+                off_plane_share=0.4, confident_rival=0.0, placed=0.0)  # fmt: skip
+    bad = dict(match_share=0.2, explained_share=0.3, agree_share=0.2, rival_margin=0.0,
+               off_plane_share=0.02, confident_rival=1.0, placed=0.0)  # fmt: skip
+    p_good, p_bad = model.probabilities(np.array([[good[f] for f in FEATURES], [bad[f] for f in FEATURES]]))
+    accept = VerifyConfig().accept_probability
+    assert p_good >= accept > p_bad
