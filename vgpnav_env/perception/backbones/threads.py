@@ -5,7 +5,8 @@ CPU share (the cores of its CPU affinity divided by the worker processes that sh
 of :mod:`vgpnav_env.eval.workers` already runs on its own share): OpenMP, OpenBLAS, MKL and numexpr
 through their environment variables (read when a library loads: effective for libraries not loaded
 yet and for child processes), BLAS libraries already loaded through ``threadpoolctl`` (when
-installed), OpenCV, torch's intra-op pool (inter-op 1) when torch is loaded, and
+installed), OpenCV, torch's intra-op pool (inter-op 1) when torch is loaded (a module that loads
+torch later calls :func:`pin_torch_threads`), and
 ``OMP_WAIT_POLICY=PASSIVE``: an idle OpenMP thread sleeps instead of spinning on a core another
 worker needs (with spinning, a torch pair took 1-7 s instead of 40-60 ms on 2 shared cores).
 OpenCV gets one thread: the backbone parallelizes over pairs and plane chunks itself (below), and
@@ -87,14 +88,22 @@ def configure_threads(workers: int = 1, threads: int | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    torch = sys.modules.get("torch")  # never imported here: loading torch costs a second
-    if torch is not None:
-        torch.set_num_threads(share)
-        try:
-            torch.set_num_interop_threads(1)
-        except RuntimeError:  # already set, or torch's inter-op pool already ran
-            pass
+    pin_torch_threads()
     return share
+
+
+def pin_torch_threads() -> None:
+    """Size torch's intra-op pool to this process's :func:`cpu_share` (inter-op 1) when torch is
+    loaded; never imports it (loading torch costs a second). A module that loads torch calls it
+    after the import (e.g. :mod:`~vgpnav_env.perception.backbones.xfeat`)."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return
+    torch.set_num_threads(cpu_share())
+    try:
+        torch.set_num_interop_threads(1)
+    except RuntimeError:  # already set, or torch's inter-op pool already ran
+        pass
 
 
 def thread_report() -> dict[str, Any]:
