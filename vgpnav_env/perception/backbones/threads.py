@@ -92,14 +92,15 @@ def configure_threads(workers: int = 1, threads: int | None = None) -> int:
     return share
 
 
-def pin_torch_threads() -> None:
-    """Size torch's intra-op pool to this process's :func:`cpu_share` (inter-op 1) when torch is
-    loaded; never imports it (loading torch costs a second). A module that loads torch calls it
-    after the import (e.g. :mod:`~vgpnav_env.perception.backbones.xfeat`)."""
+def pin_torch_threads(threads: int | None = None) -> None:
+    """Size torch's intra-op pool to ``threads`` (default: this process's :func:`cpu_share`;
+    inter-op 1) when torch is loaded; never imports it (loading torch costs a second). A module
+    that loads torch calls it after the import (:mod:`~vgpnav_env.perception.backbones.xfeat`
+    asks for 1: its small networks run on the backbone's pair threads instead)."""
     torch = sys.modules.get("torch")
     if torch is None:
         return
-    torch.set_num_threads(cpu_share())
+    torch.set_num_threads(threads if threads is not None else cpu_share())
     try:
         torch.set_num_interop_threads(1)
     except RuntimeError:  # already set, or torch's inter-op pool already ran

