@@ -908,14 +908,15 @@ class ClassicalBackbone(Backbone):
             if keys[i] is not None:
                 memo.pairs[keys[i]] = fresh[i]
         results = [fresh[i] if i in fresh else memo.pairs[keys[i]] for i in range(k)]
+        clock.lap("two_view")
         if (
             self.fallback is not None
             and sum(r[0] is not None for r in results) < self.config.fallback_min_pairs
         ):
             results = self._fall_back(views, keys, expected, results, len(memo.features.keypoints))
+            clock.lap("fallback")
         pairs = [r[0] for r in results]
         n_matches = np.array([r[1] for r in results], np.int64)
-        clock.lap("two_view")
 
         scales, linked = link_scales(pairs, self.config.min_common_points, self.config.max_link_spread)
         keypoint_depths = [pairs[i].depth * scales[i] for i in range(k) if linked[i]]
