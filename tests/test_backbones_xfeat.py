@@ -77,7 +77,7 @@ def test_xfeat_lighterglue_pairs_are_accurate_on_texture() -> None:
 @pytest.mark.parametrize(
     "config",
     [
-        ClassicalConfig(threads=1),
+        ClassicalConfig(threads=1, fallback_pairs=0),
         XFEAT_LG,
         ClassicalConfig(threads=1, fallback_pairs=5, fallback_min_pairs=5),
     ],

@@ -91,7 +91,7 @@ class ClassicalConfig:
     the Sampson error bound ``max_epipolar_error`` (px, RootSIFT; 0.5 suits noise-free renders,
     where it halved gross pairs against 1.0 -- use ~1 px on real images) or
     ``xfeat_max_epipolar_error`` (px, XFeat: its keypoints are about a pixel precise, SIFT's a
-    fifth of one), RANSAC iteration bounds, ``min_inliers``. Fallback (RootSIFT only;
+    fifth of one), RANSAC iteration bounds, ``min_inliers``. Fallback (RootSIFT features only;
     ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass, up to
     ``fallback_pairs`` failed pairs (in reference order) are matched again with XFeat + LighterGlue
     (:meth:`ClassicalConfig.fallback_config`). Planarity test with
@@ -126,7 +126,7 @@ class ClassicalConfig:
     mutual: bool = True
     max_epipolar_error: float = 0.5
     xfeat_max_epipolar_error: float = 1.0
-    fallback_pairs: int = 0
+    fallback_pairs: int = 4
     fallback_min_pairs: int = 3
     ransac_min_iterations: int = 200
     ransac_max_iterations: int = 2000
@@ -155,6 +155,11 @@ class ClassicalConfig:
     guided_position_m: float = 0.2
     guided_min_direction_deg: float = 10.0
 
+    @property
+    def uses_fallback(self) -> bool:
+        """Whether the XFeat + LighterGlue fallback is on (``fallback_pairs`` > 0 with RootSIFT)."""
+        return self.fallback_pairs > 0 and self.features == "rootsift"
+
     def fallback_config(self) -> ClassicalConfig:
         """The settings of the XFeat + LighterGlue fallback: this config with those features."""
         return replace(self, features="xfeat", matcher="lighterglue", fallback_pairs=0)
@@ -169,8 +174,6 @@ class ClassicalConfig:
             raise ValueError("matcher='lighterglue' matches XFeat features: set features='xfeat'")
         if self.fallback_pairs < 0 or self.fallback_min_pairs < 1:
             raise ValueError("need fallback_pairs >= 0 and fallback_min_pairs >= 1")
-        if self.fallback_pairs and self.features != "rootsift":
-            raise ValueError("the XFeat + LighterGlue fallback (fallback_pairs > 0) backs RootSIFT features")
         if self.xfeat_keypoints < 2 or self.xfeat_upscale <= 0 or self.xfeat_max_epipolar_error <= 0:
             raise ValueError("need xfeat_keypoints >= 2, xfeat_upscale > 0 and xfeat_max_epipolar_error > 0")
         if not 0.0 < self.ratio <= 1.0:
@@ -641,7 +644,7 @@ class ClassicalBackbone(Backbone):
         #: ``fallback_cache`` (its reference features, e.g. the database's stored XFeat features).
         self.fallback = (
             ClassicalBackbone(self.config.fallback_config(), fallback_cache)
-            if self.config.fallback_pairs
+            if self.config.uses_fallback
             else None
         )
 
