@@ -30,15 +30,16 @@ from vgpnav_env.perception.backbones.threads import configure_threads
 from vgpnav_env.perception.database import DatabaseConfig, open_database
 from vgpnav_env.runs import load_build
 
-BASE = ClassicalConfig(threads=1)
+BASE = ClassicalConfig(threads=1, fallback_pairs=0)
+XFEAT_1024 = replace(BASE, features="xfeat", xfeat_keypoints=1024)
 METHODS: dict[str, ClassicalConfig] = {
     "rootsift": BASE,
     "rootsift-c0.0005": replace(BASE, sift_contrast_threshold=0.0005),
-    "xfeat-nn": replace(BASE, features="xfeat", ratio=0.9),
+    "xfeat1024-nn": replace(XFEAT_1024, ratio=0.9),
+    "xfeat1024-lg": replace(XFEAT_1024, matcher="lighterglue"),
     "xfeat-lg": replace(BASE, features="xfeat", matcher="lighterglue"),
-    "xfeat512-lg": replace(BASE, features="xfeat", matcher="lighterglue", xfeat_keypoints=512),
-    "xfeat-lg-1.5px": replace(BASE, features="xfeat", matcher="lighterglue", xfeat_max_epipolar_error=1.5),
-    "xfeat-x2-lg": replace(BASE, features="xfeat", matcher="lighterglue", xfeat_upscale=2.0),
+    "xfeat1024-lg-1.5px": replace(XFEAT_1024, matcher="lighterglue", xfeat_max_epipolar_error=1.5),
+    "xfeat1024-x2-lg": replace(XFEAT_1024, matcher="lighterglue", xfeat_upscale=2.0),
 }
 
 
