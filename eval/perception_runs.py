@@ -178,6 +178,18 @@ def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
     return {"model": args.model, "weights_path": args.weights}
 
 
+def classical_features(options: Mapping[str, Any]) -> str:
+    """The classical backbone's features and matcher with ``options`` (the ``ClassicalConfig``
+    fields), for reports, e.g. ``rootsift + nearest, XFeat + LighterGlue fallback (4 pairs)``."""
+    from vgpnav_env.perception.backbones import ClassicalConfig
+
+    config = options.get("config") or ClassicalConfig(**options)
+    text = f"{config.features} + {config.matcher}"
+    if config.uses_fallback:
+        text += f", XFeat + LighterGlue fallback ({config.fallback_pairs} pairs)"
+    return text
+
+
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     """``--backbone`` (with ``--model`` / ``--weights``), ``--retrieval``, ``--averaging``, ``--k``,
     ``--rerank``."""
@@ -364,6 +376,11 @@ class QueryRun:
             "layout": meta["layout"],
             "image size": f"{meta['width']}x{meta['height']}",
             "backbone": self.backbone,
+            **(
+                {"features": classical_features(self.backbone_options)}
+                if self.backbone == "classical"
+                else {}
+            ),
             "perception mode": self.mode,
             "retrieval": self.config.retrieval.method,
             "averaging": self.config.averaging.method,
