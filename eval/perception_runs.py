@@ -123,6 +123,23 @@ def add_backbone_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--weights", type=Path, metavar="PATH", help="learned backbone: a local checkpoint (never downloaded)"
     )
+    parser.add_argument(
+        "--features",
+        choices=("rootsift", "xfeat"),
+        help="classical backbone: its local features (default: ClassicalConfig's)",
+    )
+    parser.add_argument(
+        "--matcher",
+        choices=("nearest", "lighterglue"),
+        help="classical backbone: nearest neighbours or LighterGlue (XFeat) (default: ClassicalConfig's)",
+    )
+    parser.add_argument(
+        "--fallback-pairs",
+        type=int,
+        metavar="N",
+        help="classical backbone with RootSIFT: when too few pairs pass, match up to N failed pairs "
+        "again with XFeat + LighterGlue, 0 = off (default: ClassicalConfig's)",
+    )
 
 
 def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str = "temporal") -> None:
@@ -139,12 +156,19 @@ def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str =
 
 
 def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The ``make_backbone`` options of ``--model`` / ``--weights``; a one-line ValueError when they
-    are missing for ``--backbone learned``, or given for another backbone."""
+    """The ``make_backbone`` options of ``--model`` / ``--weights`` (``--features`` / ``--matcher`` /
+    ``--fallback-pairs`` for the classical backbone); a one-line ValueError when they are missing
+    for ``--backbone learned``, or given for another backbone."""
+    names = ("features", "matcher", "fallback_pairs")
+    features = {k: v for k in names if (v := getattr(args, k, None)) is not None}
+    if features and args.backbone != "classical":
+        raise ValueError(
+            f"--features, --matcher and --fallback-pairs are for --backbone classical, not {args.backbone}"
+        )
     if args.backbone != "learned":
         if args.model is not None or args.weights is not None:
             raise ValueError(f"--model and --weights are for --backbone learned, not {args.backbone}")
-        return {}
+        return features
     if args.model is None or args.weights is None:
         raise ValueError(
             "--backbone learned needs --model MODULE:FACTORY and --weights PATH (a local checkpoint)"
@@ -152,6 +176,18 @@ def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
     if not args.weights.is_file():
         raise ValueError(f"--weights {args.weights}: no such file (the learned backbone never downloads)")
     return {"model": args.model, "weights_path": args.weights}
+
+
+def classical_features(options: Mapping[str, Any]) -> str:
+    """The classical backbone's features and matcher with ``options`` (the ``ClassicalConfig``
+    fields), for reports, e.g. ``rootsift + nearest, XFeat + LighterGlue fallback (4 pairs)``."""
+    from vgpnav_env.perception.backbones import ClassicalConfig
+
+    config = options.get("config") or ClassicalConfig(**options)
+    text = f"{config.features} + {config.matcher}"
+    if config.uses_fallback:
+        text += f", XFeat + LighterGlue fallback ({config.fallback_pairs} pairs)"
+    return text
 
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
@@ -350,6 +386,11 @@ class QueryRun:
             "layout": meta["layout"],
             "image size": f"{meta['width']}x{meta['height']}",
             "backbone": self.backbone,
+            **(
+                {"features": classical_features(self.backbone_options)}
+                if self.backbone == "classical"
+                else {}
+            ),
             "perception mode": self.mode,
             "retrieval": self.config.retrieval.method,
             "averaging": self.config.averaging.method,

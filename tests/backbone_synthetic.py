@@ -90,3 +90,24 @@ def corner_views(
             camera_pose([1.5 + offset[0], 1.5 + offset[1], 1.5], yaw, np.deg2rad(rng.uniform(15, 25)))
         )
     return T_wq, np.stack(T_wi), room_corner(seed)
+
+
+def plain_room(seed: int = 0, details: int = 3) -> list[TexturedPlane]:
+    """The room corner painted plain (one colour per plane, with a faint shading gradient and
+    sensor-like noise), each wall carrying ``details`` small textured posters (0.3-0.5 m)."""
+    rng = np.random.default_rng(seed)
+    planes = []
+    colours = ((150, 140, 130), (200, 198, 190), (190, 195, 200))
+    for plane, colour in zip(room_corner(seed), colours, strict=True):
+        h, w = plane.texture.shape[:2]
+        ramp = np.linspace(-8.0, 8.0, w, dtype=np.float32)[None, :, None]
+        tex = np.broadcast_to(np.array(colour, np.float32) + ramp, (h, w, 3)).copy()
+        tex += rng.normal(0.0, 1.0, tex.shape).astype(np.float32)
+        if plane.normal[2] == 0:  # a wall
+            for _ in range(details):
+                pw, ph = (int(PX_PER_M * s) for s in rng.uniform(0.3, 0.5, 2))
+                x0 = int(rng.integers(0, w - pw))
+                y0 = int(rng.integers(int(0.6 * PX_PER_M), max(int(0.6 * PX_PER_M) + 1, h - ph)))
+                tex[y0 : y0 + ph, x0 : x0 + pw] = noise_texture(rng, (pw / PX_PER_M, ph / PX_PER_M))[:ph, :pw]
+        planes.append(TexturedPlane(plane.origin, plane.u, plane.v, plane.size, tex))
+    return planes

@@ -6,11 +6,12 @@ with :meth:`Database.open`, which computes once, caching under
 ``<run_dir>/index/`` keyed by :func:`vgpnav_env.runs.run_fingerprint` (a changed run invalidates
 the cache; every file is written atomically):
 
-- the classical backbone's features of every database image (:class:`StoredFeatures`: SIFT
-  keypoints as float32 pixels and raw SIFT descriptors as uint8, ~0.2 MB per image at 1500
-  keypoints; also keyed by the feature settings of the :class:`ClassicalConfig`). They are loaded
-  into :attr:`Database.feature_cache`, which decodes RootSIFT on demand, so a query never
-  re-extracts a reference's features (the database is preprocessed, as a real system would);
+- the classical backbone's features of every database image (:class:`StoredFeatures`: keypoints
+  as float32 pixels and raw descriptors -- SIFT as uint8, ~0.2 MB per image at 1500 keypoints;
+  XFeat as float16, ~0.07 MB per image at 512 -- keyed by the feature settings of the
+  :class:`ClassicalConfig`, one file per kind). They are loaded into
+  :attr:`Database.feature_cache`, which decodes them on demand, so a query never re-extracts a
+  reference's features (the database is preprocessed, as a real system would);
 - the VLAD index (:class:`~vgpnav_env.perception.retrieval.VladIndex`) of every database image,
   fitted on the stored features when it uses the backbone's SIFT features (the default);
 - the PRIOR occupancy map (log-odds on a 0.05 m :class:`~vgpnav_env.grid.GridSpec` covering the
@@ -48,9 +49,9 @@ from vgpnav_env.perception.backbones.classical import (
     ClassicalConfig,
     FeatureCache,
     Features,
+    backbone_feature_settings,
     remember_features,
     rootsift,
-    sift_settings,
 )
 from vgpnav_env.perception.backbones.stereo import SweepConfig
 from vgpnav_env.perception.backbones.threads import thread_map
@@ -69,8 +70,11 @@ _PRIOR_FILE = "prior.npz"
 _PRIOR_META = "prior.json"
 #: Bumped whenever the stored feature format changes.
 FEATURES_VERSION = 1
-_FEATURES_FILE = "features.npz"
-_FEATURES_META = "features.json"
+#: The stored features' files (arrays, metadata) and descriptor array name, by kind.
+_FEATURE_FILES = {
+    "rootsift": ("features.npz", "features.json", "sift"),
+    "xfeat": ("features-xfeat.npz", "features-xfeat.json", "xfeat"),
+}
 
 
 @dataclass(frozen=True)
@@ -154,34 +158,41 @@ def _jsonable_key(key: dict[str, Any]) -> Any:
 
 def feature_settings(config: ClassicalConfig) -> dict[str, Any]:
     """The :class:`ClassicalConfig` fields that determine a reference's features (the store's key)."""
-    return {"version": FEATURES_VERSION, **sift_settings(config)}
+    return {"version": FEATURES_VERSION, **backbone_feature_settings(config)}
+
+
+def _kind(settings: dict[str, Any]) -> str:
+    return str(settings.get("features", "rootsift"))
 
 
 class StoredFeatures(FeatureCache):
     """The classical features of every database image, compact in memory, as a :class:`FeatureCache`.
 
     Image ``i`` (key = database index) owns rows ``offsets[i]:offsets[i + 1]`` of ``keypoints``
-    (float32 pixels, (n, 2)) and ``sift`` (raw SIFT, uint8, (n, 128)); :meth:`get` decodes its
-    RootSIFT :class:`Features` on demand and keeps the ``max_items`` most recently used decoded
-    images. Other keys behave as in a plain :class:`FeatureCache`. ``settings`` is the
+    (float32 pixels, (n, 2)) and ``descriptors`` (raw: SIFT uint8 (n, 128) or XFeat float16 (n,
+    64), as ``settings`` say); :meth:`get` decodes its :class:`Features` on demand (RootSIFT, or
+    XFeat of images of ``image_size`` (width, height)) and keeps the ``max_items`` most recently
+    used decoded images. Other keys behave as in a plain :class:`FeatureCache`. ``settings`` is the
     :func:`feature_settings` the features were extracted with.
     """
 
     def __init__(
         self,
         keypoints: NDArray[np.float32],
-        sift: NDArray[np.uint8],
+        descriptors: NDArray[Any],
         offsets: NDArray[np.int64],
         settings: dict[str, Any],
         max_items: int = 64,
+        image_size: tuple[int, int] = (0, 0),
     ) -> None:
         super().__init__(max_items)
         offsets = np.asarray(offsets, np.int64)
+        dim, dtype = (128, np.uint8) if _kind(settings) == "rootsift" else (64, np.float16)
         if (
             keypoints.ndim != 2
             or keypoints.shape[1] != 2
-            or sift.shape != (len(keypoints), 128)
-            or sift.dtype != np.uint8
+            or descriptors.shape != (len(keypoints), dim)
+            or descriptors.dtype != dtype
             or offsets.ndim != 1
             or len(offsets) < 1
             or offsets[0] != 0
@@ -189,13 +200,25 @@ class StoredFeatures(FeatureCache):
             or np.any(np.diff(offsets) < 0)
         ):
             raise ValueError(
-                "need keypoints (n, 2), uint8 sift (n, 128) and non-decreasing offsets from 0 to n; got "
-                f"{keypoints.shape}, {sift.dtype} {sift.shape}, offsets of length {len(offsets)}"
+                f"need keypoints (n, 2), {np.dtype(dtype)} descriptors (n, {dim}) and non-decreasing "
+                f"offsets from 0 to n; got {keypoints.shape}, {descriptors.dtype} {descriptors.shape}, "
+                f"offsets of length {len(offsets)}"
             )
         self.keypoints = keypoints.astype(np.float32, copy=False)
-        self.sift = sift
+        self.descriptors = descriptors
         self.offsets = offsets
         self.settings = settings
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+
+    @property
+    def kind(self) -> str:
+        """The features' kind: "rootsift" or "xfeat"."""
+        return _kind(self.settings)
+
+    @property
+    def sift(self) -> NDArray[Any]:
+        """The raw descriptors (the name of the RootSIFT store's array)."""
+        return self.descriptors
 
     @property
     def n_images(self) -> int:
@@ -204,7 +227,7 @@ class StoredFeatures(FeatureCache):
     @property
     def nbytes(self) -> int:
         """Bytes held by the compact store (decoded images come on top: ~0.8 MB each)."""
-        return int(self.keypoints.nbytes + self.sift.nbytes + self.offsets.nbytes)
+        return int(self.keypoints.nbytes + self.descriptors.nbytes + self.offsets.nbytes)
 
     def _stored(self, key: Hashable) -> bool:
         return isinstance(key, int | np.integer) and not isinstance(key, bool) and 0 <= key < self.n_images
@@ -229,14 +252,15 @@ class StoredFeatures(FeatureCache):
     ) -> StoredFeatures:
         """Detect the features of every image (M, H, W, 3) with the backbone's settings, on the
         backbone's ``threads``; ``progress`` shows a progress bar."""
+        name = "SIFT" if backbone.config.features == "rootsift" else "XFeat"
         with tqdm(
             total=len(images),
-            desc=f"database features: SIFT of {len(images)} images",
+            desc=f"database features: {name} of {len(images)} images",
             unit="image",
             disable=not progress,
         ) as bar:
 
-            def detect(image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
+            def detect(image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[Any]]:
                 found = backbone.detect(image)
                 bar.update()
                 return found
@@ -244,26 +268,36 @@ class StoredFeatures(FeatureCache):
             detected = thread_map(detect, images, backbone.config.threads)
         offsets = np.concatenate([[0], np.cumsum([len(k) for k, _ in detected])]).astype(np.int64)
         keypoints = np.concatenate([k for k, _ in detected]) if detected else np.zeros((0, 2), np.float32)
-        sift = np.concatenate([d for _, d in detected]) if detected else np.zeros((0, 128), np.uint8)
-        return cls(keypoints, sift, offsets, feature_settings(backbone.config), max_items)
+        settings = feature_settings(backbone.config)
+        empty = (
+            np.zeros((0, 128), np.uint8) if _kind(settings) == "rootsift" else np.zeros((0, 64), np.float16)
+        )
+        descriptors = np.concatenate([d for _, d in detected]) if detected else empty
+        size = (images.shape[2], images.shape[1]) if np.ndim(images) == 4 else (0, 0)
+        return cls(keypoints, descriptors, offsets, settings, max_items, size)
 
     def decoded(self, key: int) -> Features:
-        """Image ``key``'s RootSIFT :class:`Features`, decoded without entering the cache."""
+        """Image ``key``'s :class:`Features`, decoded without entering the cache."""
         a, b = self.offsets[key], self.offsets[key + 1]
-        return Features.from_sift(self.keypoints[a:b], self.sift[a:b])
+        if self.kind == "rootsift":
+            return Features.from_sift(self.keypoints[a:b], self.descriptors[a:b])
+        return Features.from_xfeat(self.keypoints[a:b], self.descriptors[a:b], self.image_size)
 
     def save(self, directory: str | os.PathLike, fingerprint: str) -> None:
-        """Write ``features.npz`` + ``features.json`` (each atomically) for the run ``fingerprint``."""
+        """Write the kind's arrays and metadata (``features.npz`` + ``features.json`` for RootSIFT;
+        each atomically) for the run ``fingerprint``."""
         d = Path(directory)
+        arrays_name, meta_name, array = _FEATURE_FILES[self.kind]
         arrays = {
             "keypoints": self.keypoints,
-            "sift": self.sift,
+            array: self.descriptors,
             "offsets": self.offsets,
+            "image_size": np.array(self.image_size),
             "fingerprint": np.array(fingerprint),
         }
-        atomic_write(d / _FEATURES_FILE, lambda f: np.savez(f, **arrays))
+        atomic_write(d / arrays_name, lambda f: np.savez(f, **arrays))
         meta = {"fingerprint": fingerprint, "settings": self.settings, "n_images": self.n_images}
-        atomic_write(d / _FEATURES_META, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+        atomic_write(d / meta_name, lambda f: f.write(json.dumps(meta, indent=2).encode()))
 
     @classmethod
     def load(
@@ -271,7 +305,8 @@ class StoredFeatures(FeatureCache):
     ) -> StoredFeatures | None:
         """The stored features, or None when missing, unreadable, of another run or other settings."""
         d = Path(directory)
-        meta_file, arrays_file = d / _FEATURES_META, d / _FEATURES_FILE
+        arrays_name, meta_name, array = _FEATURE_FILES[_kind(settings)]
+        meta_file, arrays_file = d / meta_name, d / arrays_name
         if not (meta_file.is_file() and arrays_file.is_file()):
             return None
         try:
@@ -281,7 +316,8 @@ class StoredFeatures(FeatureCache):
             with np.load(arrays_file) as z:
                 if str(z["fingerprint"]) != fingerprint:
                     return None
-                return cls(z["keypoints"], z["sift"], z["offsets"], settings, max_items)
+                size = tuple(z["image_size"]) if "image_size" in z else (0, 0)
+                return cls(z["keypoints"], z[array], z["offsets"], settings, max_items, size)
         except (OSError, KeyError, ValueError) as e:
             logger.warning("ignoring unreadable feature cache in %s: %s", d, e)
             return None
@@ -294,7 +330,9 @@ class Database:
     ``prior`` is the prior log-odds map (None with ``config.prior="none"``); ``z_ground`` the
     floor height estimated from the database (world frame, metres; nan without a prior);
     ``timings`` how long the features, index and prior took to load or compute (wall seconds;
-    ``<step>_cpu``: the process's CPU seconds, all threads).
+    ``<step>_cpu``: the process's CPU seconds, all threads). ``feature_cache`` holds the backbone's
+    features (of kind ``feature_kind``); retrieval's RootSIFT of references live there too when the
+    backbone's features are RootSIFT, else in ``retrieval_cache``.
     """
 
     path: Path
@@ -307,6 +345,9 @@ class Database:
     prior: LogOddsMap | None = None
     z_ground: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
+    feature_kind: str = "rootsift"
+    retrieval_cache: FeatureCache = field(default_factory=FeatureCache)
+    other_features: dict[str, FeatureCache] = field(default_factory=dict)
 
     @property
     def poses(self) -> NDArray[np.float64]:
@@ -324,13 +365,23 @@ class Database:
     def __len__(self) -> int:
         return len(self.run)
 
-    def features_for(self, config: ClassicalConfig) -> FeatureCache:
+    def features_for(self, config: ClassicalConfig, progress: bool = True) -> FeatureCache:
         """The feature cache a classical backbone with ``config`` shares with this database.
 
-        Raises ValueError when the stored features were extracted with other settings
-        (:func:`feature_settings`): open the database with that ``backbone_config`` instead.
+        Features of another kind than the database's backbone's (``config.features``, e.g. XFeat
+        beside RootSIFT) are loaded from their own cache file, or extracted and stored once
+        (``progress``: a progress bar), and kept. Raises ValueError when the stored features of
+        ``config``'s kind were extracted with other settings (:func:`feature_settings`): open the
+        database with that ``backbone_config`` instead.
         """
-        store = self.feature_cache
+        if config.features == self.feature_kind:
+            store = self.feature_cache
+        else:
+            if config.features not in self.other_features:
+                self.other_features[config.features] = _open_features(
+                    self.path / "index", self.run, self.fingerprint, self.config, config, progress
+                )
+            store = self.other_features[config.features]
         if isinstance(store, StoredFeatures) and store.settings != feature_settings(config):
             raise ValueError(
                 f"the database's stored features were extracted with {store.settings}, the backbone "
@@ -342,10 +393,11 @@ class Database:
     def reference_features(self, i: int) -> Features:
         """Database image ``i``'s RootSIFT features with the index's feature settings (stored, else
         extracted and kept in :attr:`feature_cache`)."""
-        features = self.feature_cache.get(i)
+        cache = self.feature_cache if self.feature_kind == "rootsift" else self.retrieval_cache
+        features = cache.get(i)
         if features is None:
             features = rootsift(self.images[i], self.index.sift)
-            self.feature_cache.put(i, features)
+            cache.put(i, features)
         return features
 
     def new_map(self, config: OccupancyConfig | None = None) -> LogOddsMap:
@@ -386,18 +438,9 @@ class Database:
 
         xy = run.positions[:, :2]
         spec = GridSpec.covering(xy.min(axis=0), xy.max(axis=0), config.map_resolution, config.map_margin)
-        feature_cache: FeatureCache = FeatureCache(config.feature_cache_size)
+        t0, c0 = time.perf_counter(), time.process_time()
+        feature_cache = _open_features(cache, run, fingerprint, config, backbone_config, progress)
         if config.store_features:
-            t0, c0 = time.perf_counter(), time.process_time()
-            settings = feature_settings(backbone_config)
-            feature_cache = StoredFeatures.load(cache, fingerprint, settings, config.feature_cache_size)
-            if feature_cache is None or feature_cache.n_images != len(run):
-                logger.info("extracting the classical features of %d database images", len(run))
-                backbone = ClassicalBackbone(backbone_config)
-                feature_cache = StoredFeatures.extract(
-                    run.images, backbone, config.feature_cache_size, progress=progress
-                )
-                feature_cache.save(cache, fingerprint)
             timings["features"] = time.perf_counter() - t0
             timings["features_cpu"] = time.process_time() - c0
 
@@ -406,7 +449,11 @@ class Database:
         if index is None or index.config != config.vlad:
             logger.info("fitting the VLAD index of %d database images (%s)", len(run), path)
             stored = None
-            if config.vlad.local_features == "sift" and isinstance(feature_cache, StoredFeatures):
+            if (
+                config.vlad.local_features == "sift"
+                and isinstance(feature_cache, StoredFeatures)
+                and feature_cache.kind == "rootsift"
+            ):
                 stored = [feature_cache.decoded(i).descriptors for i in range(len(run))]
             index = VladIndex.fit(
                 list(run.images),
@@ -422,7 +469,17 @@ class Database:
         timings["index"] = time.perf_counter() - t0
         timings["index_cpu"] = time.process_time() - c0
 
-        db = cls(path, run, index, fingerprint, config, spec, feature_cache, timings=timings)
+        db = cls(
+            path,
+            run,
+            index,
+            fingerprint,
+            config,
+            spec,
+            feature_cache,
+            timings=timings,
+            feature_kind=backbone_config.features,
+        )
         if config.prior == "database":
             t0, c0 = time.perf_counter(), time.process_time()
             db._load_or_build_prior(cache, backbone_config, progress)
@@ -465,6 +522,28 @@ class Database:
         )
         meta = {"fingerprint": self.fingerprint, "key": key, "stats": stats}
         atomic_write(meta_file, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+
+
+def _open_features(
+    cache: Path,
+    run: Run,
+    fingerprint: str,
+    config: DatabaseConfig,
+    backbone_config: ClassicalConfig,
+    progress: bool,
+) -> FeatureCache:
+    """The database images' features with ``backbone_config``'s settings: loaded from ``cache``,
+    else extracted and saved there; an empty :class:`FeatureCache` without ``store_features``."""
+    if not config.store_features:
+        return FeatureCache(config.feature_cache_size)
+    settings = feature_settings(backbone_config)
+    store = StoredFeatures.load(cache, fingerprint, settings, config.feature_cache_size)
+    if store is None or store.n_images != len(run):
+        logger.info("extracting the %s features of %d database images", backbone_config.features, len(run))
+        backbone = ClassicalBackbone(backbone_config)
+        store = StoredFeatures.extract(run.images, backbone, config.feature_cache_size, progress=progress)
+        store.save(cache, fingerprint)
+    return store
 
 
 def database_run_dir(path: str | os.PathLike) -> Path:

@@ -48,7 +48,10 @@ def _classical(
 ) -> Backbone:
     _one_config(config, knobs, "ClassicalConfig")
     config = config or ClassicalConfig(**knobs)
-    return ClassicalBackbone(config, database.features_for(config) if database is not None else None)
+    if database is None:
+        return ClassicalBackbone(config)
+    fallback = database.features_for(config.fallback_config()) if config.uses_fallback else None
+    return ClassicalBackbone(config, database.features_for(config), fallback)
 
 
 def _simulated(

