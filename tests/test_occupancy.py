@@ -239,3 +239,20 @@ def test_sight_lines_over_a_low_obstacle_do_not_clear_it() -> None:
     for _ in range(5):
         _fuse(tall, _floor(2.0, 2.9, 1.025), (-0.5, 1.0))
     assert not tall.occupied()[cell]
+
+
+def test_floor_seen_needs_ground_points_not_sight_lines() -> None:
+    """Sight lines over a cell make it free but not floor-seen; ground points in it in two frames
+    do (what reopens a contact mark)."""
+    m = LogOddsMap(SPEC)
+    over = (0.525, 1.025)  # under the lines from the camera at x = -0.5 to the floor at 2-2.9 m
+    cell = tuple(SPEC.world_to_cell(np.array(over)))
+    for _ in range(5):
+        _fuse(m, _floor(2.0, 2.9, 1.025), (-0.5, 1.0), OccupancyConfig(clear_height=1.2))
+    assert m.free(0.2)[cell] and not m.floor_seen(0.2)[cell]
+    _fuse(m, _floor(0.45, 0.6, 1.025), (-0.5, 1.0))
+    assert not m.floor_seen(0.2)[cell]
+    _fuse(m, _floor(0.45, 0.6, 1.025), (-0.5, 1.0))
+    assert m.floor_seen(0.2)[cell]
+    m.logodds = np.zeros(SPEC.shape, np.float32)  # a new episode
+    assert not m.floor_frames.any()

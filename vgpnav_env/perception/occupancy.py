@@ -189,8 +189,9 @@ class LogOddsMap:
     obstacle cell (when ``camera_xy`` is given; rays go to the farthest obstacle cell per
     one-cell-wide direction bin, which keeps the carving cheap), never to a cell hit by an obstacle in the
     same frame; values are clamped to ``clamp``. :attr:`top` holds per cell the height (m above the
-    ground) of the highest obstacle point fused there (0: none); setting :attr:`logodds` (a prior,
-    a new episode) forgets it.
+    ground) of the highest obstacle point fused there (0: none), :attr:`floor_frames` in how many
+    frames ground points fell in it (the floor seen there, not only sight lines over it); setting
+    :attr:`logodds` (a prior, a new episode) forgets both.
     """
 
     def __init__(
@@ -212,13 +213,15 @@ class LogOddsMap:
 
     @property
     def logodds(self) -> NDArray[np.float32]:
-        """The log-odds grid (float32, ``spec.shape``); setting it forgets :attr:`top`."""
+        """The log-odds grid (float32, ``spec.shape``); setting it forgets :attr:`top` and
+        :attr:`floor_frames`."""
         return self._logodds
 
     @logodds.setter
     def logodds(self, value: NDArray[np.float32]) -> None:
         self._logodds = value
         self.top = np.zeros(self.spec.shape, np.float32)
+        self.floor_frames = np.zeros(self.spec.shape, np.uint16)
 
     @classmethod
     def from_prior(
@@ -240,7 +243,7 @@ class LogOddsMap:
     def copy(self) -> LogOddsMap:
         m = LogOddsMap(self.spec, self.l_free, self.l_occ, self.clamp)
         m.logodds = self.logodds.copy()
-        m.top = self.top.copy()
+        m.top, m.floor_frames = self.top.copy(), self.floor_frames.copy()
         return m
 
     def update(
@@ -278,6 +281,8 @@ class LogOddsMap:
             obstacle = obstacle[near <= max_obstacle_range]
         occ = _unique_cells(self.spec, obstacle[:, :2], min_cell_points)
         free = [_unique_cells(self.spec, P[classes.free, :2])]
+        floor = self.floor_frames.reshape(-1)
+        floor[free[0]] = np.minimum(floor[free[0]], np.iinfo(np.uint16).max - 1) + 1
         if camera_xy is not None and clear_height is not None:
             seen = P[classes.free | classes.obstacle] - [0.0, 0.0, z_ground]
             seen[:, 2] = np.maximum(seen[:, 2], 0.0)
@@ -343,6 +348,12 @@ class LogOddsMap:
 
     def free(self, threshold: float = 0.35) -> NDArray[np.bool_]:
         return self.probability() < threshold
+
+    def floor_seen(self, threshold: float = 0.35, min_frames: int = 2) -> NDArray[np.bool_]:
+        """Cells :meth:`free` below ``threshold`` whose floor was seen in ``min_frames`` frames:
+        free by what the camera saw there, not only by sight lines passing over (which a low
+        obstacle in the camera's blind zone below its view lets through)."""
+        return self.free(threshold) & (self.floor_frames >= min_frames)
 
     def egocentric_crop(
         self,
