@@ -47,7 +47,9 @@ from vgpnav_env.robot import FORWARD_STEP, ROBOT_RADIUS, TURN_STEP_DEG, Action
 logger = logging.getLogger(__name__)
 
 #: A contact point is reopened where the fused map's occupancy probability is below this (about
-#: four frames' net free evidence: the floor there seen, not only sight lines over it).
+#: four frames' net free evidence) and the floor there was seen
+#: (:meth:`~vgpnav_env.perception.occupancy.LogOddsMap.floor_seen`): sight lines over a low
+#: obstacle in the camera's blind zone reopened the contacts on it, and the robot bumped it again.
 REOPEN_FREE = 0.2
 
 

@@ -98,7 +98,7 @@ class PathChannel:
         occupied = fused_map.occupied()
         bumped = bool(obs.get(BUMPED_KEY)) and obs.get(LAST_ACTION_KEY) == Action.FORWARD
         self.planner.update_contacts(np.array([x, y]), yaw if bumped else None, fused_map.spec.resolution)
-        self.planner.reopen_contacts(fused_map.free(REOPEN_FREE), fused_map.spec)
+        self.planner.reopen_contacts(fused_map.floor_seen(REOPEN_FREE), fused_map.spec)
         if bumped or self._replan(occupied, fused_map.spec, goal, np.array([x, y])):
             self.planner.plan((x, y, yaw), occupied, fused_map.spec, goal)
             path = self.planner.path

@@ -185,7 +185,7 @@ class PerceptionAStar:
             fused.spec,
             goal,
             self._blocked(),
-            free=fused.free(REOPEN_FREE),
+            free=fused.floor_seen(REOPEN_FREE),
             position_sigma=sigma,
         )
         if self.agent.path is not None:

@@ -212,3 +212,47 @@ def test_sight_lines_clear_only_where_they_run_low() -> None:
     lone = LogOddsMap(SPEC)
     _fuse(lone, [[2.0, 1.0, 0.5]], camera_xy=(0.0, 1.0))  # one point in its cell
     assert not lone.occupied().any()
+
+
+def test_sight_lines_over_a_low_obstacle_do_not_clear_it() -> None:
+    """A 0.45 m box 1 m from the camera, then the floor seen beyond it: the sight lines pass over
+    the box about 0.7 m high, under the default ``clear_height`` (0.8 m) but above the box's
+    highest fused point, so they prove nothing about it and it stays an obstacle; the same lines
+    clear a cell that held only a prior (no point fused there), and a line under a fused phantom's
+    top clears it."""
+    box = (0.525, 1.025)
+    cell = tuple(SPEC.world_to_cell(np.array(box)))
+    m = LogOddsMap(SPEC)
+    _fuse(m, np.concatenate([_cell_points(box, z) for z in (0.2, 0.3, 0.45)]), (-0.5, 1.0))
+    assert m.occupied()[cell] and m.top[cell] == pytest.approx(0.45)
+    for _ in range(5):
+        _fuse(m, _floor(2.0, 2.9, 1.025), (-0.5, 1.0))
+    assert m.occupied()[cell] and m.logodds[cell] >= 0.85
+    prior = LogOddsMap.from_prior(SPEC, np.zeros(SPEC.shape))
+    prior.logodds[cell] = 1.0
+    assert prior.top[cell] == 0.0
+    for _ in range(5):
+        _fuse(prior, _floor(2.0, 2.9, 1.025), (-0.5, 1.0))
+    assert not prior.occupied()[cell]
+    tall = LogOddsMap(SPEC)
+    _fuse(tall, _cell_points(box, 1.0), (-0.5, 1.0))  # a floating phantom 1 m high
+    for _ in range(5):
+        _fuse(tall, _floor(2.0, 2.9, 1.025), (-0.5, 1.0))
+    assert not tall.occupied()[cell]
+
+
+def test_floor_seen_needs_ground_points_not_sight_lines() -> None:
+    """Sight lines over a cell make it free but not floor-seen; ground points in it in two frames
+    do (what reopens a contact mark)."""
+    m = LogOddsMap(SPEC)
+    over = (0.525, 1.025)  # under the lines from the camera at x = -0.5 to the floor at 2-2.9 m
+    cell = tuple(SPEC.world_to_cell(np.array(over)))
+    for _ in range(5):
+        _fuse(m, _floor(2.0, 2.9, 1.025), (-0.5, 1.0), OccupancyConfig(clear_height=1.2))
+    assert m.free(0.2)[cell] and not m.floor_seen(0.2)[cell]
+    _fuse(m, _floor(0.45, 0.6, 1.025), (-0.5, 1.0))
+    assert not m.floor_seen(0.2)[cell]
+    _fuse(m, _floor(0.45, 0.6, 1.025), (-0.5, 1.0))
+    assert m.floor_seen(0.2)[cell]
+    m.logodds = np.zeros(SPEC.shape, np.float32)  # a new episode
+    assert not m.floor_frames.any()

@@ -112,24 +112,25 @@ def _sight_line_cells(
     camera_z: float,
     points: NDArray[np.float64],
     height: float,
-) -> NDArray[np.int64]:
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """Flat indices of the cells under the sight lines from a camera (``camera_xy``, ``camera_z``
     m above the ground) to points (N, 3: x, y and height above the ground) where a line runs at
-    most ``height`` m above the ground, the points' own cells excluded: what the line passing
-    there proves free of obstacles that tall (it reached the point). One line per distinct cell
-    of the points (its lowest point)."""
+    most ``height`` m above the ground, the points' own cells excluded, and the lowest height (m)
+    a line runs at over each: what the line passing there proves free of obstacles taller than
+    that (it reached the point). One line per distinct cell of the points (its lowest point)."""
     W = spec.shape[1]
+    none = np.zeros(0, np.int64), np.zeros(0, float)
     cells = spec.world_to_cell(points[:, :2])
     inside = spec.contains(cells)
     flat, z = cells[inside, 0] * W + cells[inside, 1], points[inside, 2]
     if len(flat) == 0:
-        return np.zeros(0, np.int64)
+        return none
     order = np.lexsort((z, flat))
     first = np.r_[True, flat[order][1:] != flat[order][:-1]]
     flat, z = flat[order][first], z[order][first]
     low = z < min(height, camera_z)
     if not low.any():
-        return np.zeros(0, np.int64)
+        return none
     flat, z = flat[low], z[low]
     start = np.asarray(camera_xy, float)
     ends = spec.cell_to_world(np.stack([flat // W, flat % W], axis=1))
@@ -141,9 +142,15 @@ def _sight_line_cells(
     t = t0[:, None] + u * (1.0 - t0)[:, None]
     keep = (np.arange(steps)[None, :] < n[:, None]) & (t < 1.0)
     xy = start + t[..., None] * (ends - start)[:, None, :]
-    on = spec.world_to_cell(xy[keep])
-    on = on[spec.contains(on)]
-    return np.setdiff1d(np.unique(on[:, 0] * W + on[:, 1]), flat)
+    line_z = camera_z + t * (z - camera_z)[:, None]
+    on, on_z = spec.world_to_cell(xy[keep]), line_z[keep]
+    inside = spec.contains(on)
+    on_flat, on_z = on[inside, 0] * W + on[inside, 1], on_z[inside]
+    mine = ~np.isin(on_flat, flat)
+    on_flat, on_z = on_flat[mine], on_z[mine]
+    order = np.lexsort((on_z, on_flat))
+    first = np.r_[True, on_flat[order][1:] != on_flat[order][:-1]] if len(order) else np.zeros(0, bool)
+    return on_flat[order][first], on_z[order][first]
 
 
 def _farthest_per_direction(start: NDArray[np.int64], ends: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -181,7 +188,10 @@ class LogOddsMap:
     ``l_free`` once per cell with ground points or crossed by a 2D ray from the camera to an
     obstacle cell (when ``camera_xy`` is given; rays go to the farthest obstacle cell per
     one-cell-wide direction bin, which keeps the carving cheap), never to a cell hit by an obstacle in the
-    same frame; values are clamped to ``clamp``.
+    same frame; values are clamped to ``clamp``. :attr:`top` holds per cell the height (m above the
+    ground) of the highest obstacle point fused there (0: none), :attr:`floor_frames` in how many
+    frames ground points fell in it (the floor seen there, not only sight lines over it); setting
+    :attr:`logodds` (a prior, a new episode) forgets both.
     """
 
     def __init__(
@@ -200,6 +210,18 @@ class LogOddsMap:
         self.l_occ = float(l_occ)
         self.clamp = (float(clamp[0]), float(clamp[1]))
         self.logodds = np.zeros(spec.shape, np.float32)
+
+    @property
+    def logodds(self) -> NDArray[np.float32]:
+        """The log-odds grid (float32, ``spec.shape``); setting it forgets :attr:`top` and
+        :attr:`floor_frames`."""
+        return self._logodds
+
+    @logodds.setter
+    def logodds(self, value: NDArray[np.float32]) -> None:
+        self._logodds = value
+        self.top = np.zeros(self.spec.shape, np.float32)
+        self.floor_frames = np.zeros(self.spec.shape, np.uint16)
 
     @classmethod
     def from_prior(
@@ -221,6 +243,7 @@ class LogOddsMap:
     def copy(self) -> LogOddsMap:
         m = LogOddsMap(self.spec, self.l_free, self.l_occ, self.clamp)
         m.logodds = self.logodds.copy()
+        m.top, m.floor_frames = self.top.copy(), self.floor_frames.copy()
         return m
 
     def update(
@@ -243,9 +266,11 @@ class LogOddsMap:
         :class:`OccupancyConfig`'s: with ``clear_height`` and ``camera_xy`` the free evidence runs
         along every point's sight line from the camera (at ``camera_height`` above the ground) where
         it is at most ``clear_height`` m high (:func:`_sight_line_cells`) instead of the 2D rays to
-        obstacle cells; obstacle cells need ``min_cell_points`` points and, with ``camera_xy``, to
-        lie within ``max_obstacle_range`` m of it; ``protect_free``: a cell below 0 (seen free)
-        rises to 0 at most in this frame.
+        obstacle cells, and in a cell with obstacle points fused (:attr:`top`) only where it runs
+        below the highest of them: a line over a low box proves nothing about the box; obstacle
+        cells need ``min_cell_points`` points and, with ``camera_xy``, to lie within
+        ``max_obstacle_range`` m of it; ``protect_free``: a cell below 0 (seen free) rises to 0 at
+        most in this frame.
         """
         P = np.asarray(points_w, float).reshape(-1, 3)
         classes = classify_points(P, z_ground, camera_height, free_tol, obstacle_min)
@@ -256,10 +281,15 @@ class LogOddsMap:
             obstacle = obstacle[near <= max_obstacle_range]
         occ = _unique_cells(self.spec, obstacle[:, :2], min_cell_points)
         free = [_unique_cells(self.spec, P[classes.free, :2])]
+        floor = self.floor_frames.reshape(-1)
+        floor[free[0]] = np.minimum(floor[free[0]], np.iinfo(np.uint16).max - 1) + 1
         if camera_xy is not None and clear_height is not None:
             seen = P[classes.free | classes.obstacle] - [0.0, 0.0, z_ground]
             seen[:, 2] = np.maximum(seen[:, 2], 0.0)
-            free.append(_sight_line_cells(self.spec, camera_xy, camera_height, seen, clear_height))
+            lines, line_z = _sight_line_cells(self.spec, camera_xy, camera_height, seen, clear_height)
+            top = self.top.reshape(-1)[lines]
+            free.append(lines[(top == 0.0) | (line_z < top)])
+            self._raise_top(obstacle, z_ground, occ)
         elif camera_xy is not None and len(occ):
             start = self.spec.world_to_cell(np.asarray(camera_xy, float)[:2])
             ends = _farthest_per_direction(start, np.stack([occ // W, occ % W], axis=1))
@@ -276,6 +306,15 @@ class LogOddsMap:
         flat[free_cells] += self.l_free
         np.clip(self.logodds, *self.clamp, out=self.logodds)
         return classes
+
+    def _raise_top(self, obstacle: NDArray[np.float64], z_ground: float, occ: NDArray[np.int64]) -> None:
+        """Raise :attr:`top` of the obstacle cells ``occ`` (flat) to their highest obstacle point."""
+        cells = self.spec.world_to_cell(obstacle[:, :2])
+        inside = self.spec.contains(cells)
+        flat = cells[inside, 0] * self.spec.shape[1] + cells[inside, 1]
+        z = obstacle[inside, 2] - z_ground
+        counted = np.isin(flat, occ)
+        np.maximum.at(self.top.reshape(-1), flat[counted], z[counted].astype(np.float32))
 
     def mark_contact(
         self, pose: ArrayLike, radius: float, half_width: float | None = None, depth: float | None = None
@@ -309,6 +348,12 @@ class LogOddsMap:
 
     def free(self, threshold: float = 0.35) -> NDArray[np.bool_]:
         return self.probability() < threshold
+
+    def floor_seen(self, threshold: float = 0.35, min_frames: int = 2) -> NDArray[np.bool_]:
+        """Cells :meth:`free` below ``threshold`` whose floor was seen in ``min_frames`` frames:
+        free by what the camera saw there, not only by sight lines passing over (which a low
+        obstacle in the camera's blind zone below its view lets through)."""
+        return self.free(threshold) & (self.floor_frames >= min_frames)
 
     def egocentric_crop(
         self,
