@@ -31,6 +31,7 @@ class OracleAgent:
         agent_kwargs.setdefault("turn_step_deg", float(np.degrees(base.turn_step)))
         agent_kwargs.setdefault("navigable", gt.navigable)
         agent_kwargs.setdefault("contact_arc_deg", 0.0)  # its map holds every hull: a contact is a graze
+        agent_kwargs.setdefault("cost_weight", 0.0)  # an exact map needs no clearance cost: shortest paths
         self.base = base
         self.spec = gt.spec
         self.obstacles = ~np.asarray(gt.free, bool)

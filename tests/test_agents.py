@@ -235,7 +235,7 @@ def test_oracle_reaches_95_percent_of_20_home_episodes():
     summary = summarize(records)
     assert summary["episodes"] == 20
     assert summary["success_rate"] >= 0.95, [(r.seed, r.failure) for r in records if not r.success]
-    assert summary["spl"] >= 0.8
+    assert summary["spl"] >= 0.95  # shortest paths on the exact map: 0.976 (0.946 with the clearance cost)
     assert summary["collisions_per_episode"] <= 1.0
 
 
