@@ -402,7 +402,10 @@ def _cell(value: Any, fmt: str) -> str:
 def leaderboard_row(results: dict[str, Any]) -> tuple[list[str], list[str]]:
     """(header, row) of the results' leaderboard line."""
     s = results["settings"]
-    agent = s["agent"] + (f" + {s['backbone']}" if s["backbone"] else "")
+    name = s["agent"]
+    if name.startswith("ppo:"):  # a run directory's name, not the machine's path
+        name = "ppo:" + Path(name[4:]).name
+    agent = name + (f" + {s['backbone']}" if s["backbone"] else "")
     commit = (results["git_commit"] or "-")[:12]
     header = ["task", "split", "agent", *(h for h, _, _ in LEADERBOARD), "episodes", "errors", "commit"]
     episodes = f"{results['episodes']}" + (
