@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, make_pose, rotation_angle
+from vgpnav_env.geometry import make_pose, rotation_angle
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
@@ -31,6 +31,7 @@ from vgpnav_env.perception.motion_averaging import (
 from vgpnav_env.perception.retrieval import pose_guided_references
 from vgpnav_env.perception.verify import (
     LostReason,
+    Pairs,
     PoseGate,
     VerifyConfig,
     assess,
@@ -152,15 +153,10 @@ def second_round_references(
 
 
 def slide_on_ray(
-    T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    weights: NDArray[np.float64],
-    camera: PinholeCamera,
-    config: VerifyConfig,
+    T_wq: NDArray[np.float64], pairs: Pairs, weights: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], float] | None:
-    """``T_wq`` moved along the ray of the pair its position rests on, to where the other
-    references' matches confirm it, and the factor its distance to that pair's reference grew
+    """``T_wq`` moved along the ray of the pair (of the query's ``pairs``) its position rests on, to
+    where the other references' matches confirm it, and the factor its distance to that pair's reference grew
     by (what the scale that placed it was off by); None when nothing moves (``ray_slide_share``
     None, no pair with at least that share of the translation ``weights`` (k,), or no place
     gains the support).
@@ -173,6 +169,7 @@ def slide_on_ray(
     best, the middle of equal ones), the rotation kept; the best counts when it gains at least
     ``ray_slide_gain`` of ``T_wq``'s support and reaches ``min_support_matches`` (fewer are stray
     matches, not a reference that sees the place)."""
+    T_wi, out, config = pairs.T_wi, pairs.out, pairs.config
     share = config.ray_slide_share
     w = np.asarray(weights, float)
     if share is None or out.matches is None or len(w) != len(T_wi) or not w.sum() > 0:
@@ -184,9 +181,10 @@ def slide_on_ray(
     ray, centre = ray / np.linalg.norm(ray), T_wi[j][:3, 3]
     others = np.flatnonzero(np.arange(len(w)) != j)
     matches = [out.matches[i] for i in others]
+    error_px = config.max_epipolar_error_px
 
     def support(T: NDArray[np.float64]) -> int:
-        return int(epipolar_support(T, T_wi[others], matches, camera, config.max_epipolar_error_px).sum())
+        return int(epipolar_support(T, T_wi[others], matches, pairs.camera, error_px).sum())
 
     def at(distance: float) -> NDArray[np.float64]:
         T = T_wq.copy()
@@ -385,9 +383,8 @@ def slide(perceiver: Perceiver, frame: Frame, outcome: Outcome) -> Outcome | Non
     if attempt.rival or pose.anchor is not None:
         return None
     with frame.clock.stage("verification"):
-        T_wi = perceiver.database.poses[loc.references]
-        cfg = perceiver.config.verify
-        moved = slide_on_ray(pose.T_wc, T_wi, loc.backbone, loc.motion.weights, perceiver.camera, cfg)
+        pairs = perceiver.pairs(loc.references, loc.backbone)
+        moved = slide_on_ray(pose.T_wc, pairs, loc.motion.weights)
         if moved is None:
             return None
         T, factor = moved
@@ -433,32 +430,26 @@ def place_on_prior(
     if not (out.confidence > 0).any():
         return None
     cfg, v = perceiver.config, perceiver.config.verify
-    T_wi = perceiver.database.poses[refs]
+    pairs = perceiver.pairs(refs, out)
+    T_wi = pairs.T_wi
     camera_z = float(perceiver.anchor.z_ground) + cfg.camera_height
-    hypotheses = prior_poses(T_wi, out, perceiver.camera, prior, camera_z, v)
+    hypotheses = prior_poses(pairs, prior, camera_z)
     if not hypotheses:
         return None
-    own = None
     baseline = np.linalg.norm(out.T_iq[:, :3, 3], axis=1)
     best = None
-    if out.matches is not None:
-        refined = [
-            refine_pose(T, T_wi, out.matches, perceiver.camera, v, max_shift=prior.max_distance)
-            for T in hypotheses
-        ]
-        hypotheses += [T for T in refined if prior.admits(T)]
+    refined = [refine_pose(T, pairs, max_shift=prior.max_distance) for T in hypotheses]
+    hypotheses += [T for T in refined if prior.admits(T)]
     for T in hypotheses:
         distance = np.linalg.norm(T_wi[:, :3, 3] - T[:3, 3], axis=1)
-        support = reference_support(T, T_wi, out, perceiver.camera, v)
+        support = reference_support(T, pairs)
         usable = (support >= v.min_support_matches) & out.scale_valid & (baseline > 0) & (out.confidence > 0)
         if not usable.any():
             continue
         pair_scale = float(np.median(distance[usable] / baseline[usable]))
-        assessed = assess(
-            T, T_wi, out, perceiver.camera, v, scale=pair_scale, averaging=cfg.averaging, camera_z=camera_z,
-            own=own, prior=prior,
-        )  # fmt: skip
-        verdict, own = assessed.verdict, assessed.own
+        verdict = assess(
+            T, pairs, scale=pair_scale, averaging=cfg.averaging, camera_z=camera_z, prior=prior
+        ).verdict
         enough = verdict.n_supporting >= max(2, v.min_supporting_references)
         if not (verdict.ok and enough) or (best is not None and verdict.strength <= best[3].strength):
             continue

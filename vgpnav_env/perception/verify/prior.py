@@ -8,42 +8,38 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, make_pose, rotation_angle, wrap_angle
+from vgpnav_env.geometry import camera_yaw_pitch, make_pose, rotation_angle, wrap_angle
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig
 from vgpnav_env.perception.verify.config import PoseGate, VerifyConfig
-from vgpnav_env.perception.verify.support import reference_support
+from vgpnav_env.perception.verify.support import Pairs, reference_support
 from vgpnav_env.perception.verify.verdict import Verdict, assess, implausible_mount, roll_deg
 
 
 def prior_hypothesis(
     T_wq: NDArray[np.float64],
     rivals: Sequence[NDArray[np.float64]],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    config: VerifyConfig,
+    pairs: Pairs,
     prior: PoseGate,
     *,
     scale: float,
     averaging: MotionAveragingConfig,
     camera_z: float = float("nan"),
-    own: NDArray[np.int64] | None = None,
 ) -> tuple[NDArray[np.float64], Verdict] | None:
     """The pose the ``prior`` picks when the images do not confirm ``T_wq`` inside it: of the
     ``rivals`` of ``T_wq`` (:func:`rival_poses`) inside the prior, the one with the most support
-    that :func:`verify_pose` confirms as the pose (with the prior, against its own rivals and
-    ``T_wq``), and its verdict; None when none is confirmed. In identical wards the averaged pose
-    is often the other ward's view and the true place's pairs make a rival: inside the prior, it
-    is the robot's. ``scale``: metres per backbone unit of the rivals' own rivals."""
+    that :func:`verify_pose` confirms as the pose against the query's ``pairs`` (with the prior,
+    against its own rivals and ``T_wq``), and its verdict; None when none is confirmed. In
+    identical wards the averaged pose is often the other ward's view and the true place's pairs
+    make a rival: inside the prior, it is the robot's. ``scale``: metres per backbone unit of the
+    rivals' own rivals."""
     best = None
     for T in rivals:
         if not prior.admits(T):
             continue
         verdict = assess(
-            T, T_wi, out, camera, config, scale=scale, averaging=averaging, camera_z=camera_z, own=own,
-            prior=prior, rivals=[T_wq],
-        ).verdict  # fmt: skip
+            T, pairs, scale=scale, averaging=averaging, camera_z=camera_z, prior=prior, rivals=[T_wq]
+        ).verdict
         if verdict.ok and (best is None or verdict.strength > best[1].strength):
             best = T, verdict
     return best
@@ -82,15 +78,9 @@ def prior_pairs(T_wi: NDArray[np.float64], out: BackboneOutput, prior: PoseGate)
     return agree
 
 
-def prior_poses(
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    prior: PoseGate,
-    camera_z: float,
-    config: VerifyConfig,
-) -> list[NDArray[np.float64]]:
-    """Pose hypotheses inside the ``prior`` for a frame motion averaging could not place: per
+def prior_poses(pairs: Pairs, prior: PoseGate, camera_z: float) -> list[NDArray[np.float64]]:
+    """Pose hypotheses inside the ``prior`` for a frame motion averaging could not place, from the
+    query's ``pairs``: per
     confident pair (most confident first, up to ``prior_hypotheses``) whose own rotation
     ``R_wi R_iq`` a ground robot's camera could have (roll within ``prior_max_roll_deg``, the
     mount's pitch) with its heading within the prior's yaw bound, that rotation at the camera
@@ -101,6 +91,7 @@ def prior_poses(
     directions are 50-70 deg off); the matches themselves still fit the true pose. Each
     hypothesis must still be confirmed by :func:`verify_pose`.
     """
+    T_wi, out, config = pairs.T_wi, pairs.out, pairs.config
     x, y, yaw = np.asarray(prior.pose, float)
     step = config.prior_grid_m
     n = int(np.ceil(prior.max_distance / step))
@@ -111,7 +102,7 @@ def prior_poses(
     def best(R: NDArray[np.float64], centre: NDArray[np.float64], grid: NDArray[np.float64]):
         poses = [make_pose(R, np.r_[centre + o, camera_z]) for o in grid]
         poses = [T for T in poses if prior.admits(T)]
-        scores = [int(reference_support(T, T_wi, out, camera, config).sum()) for T in poses]
+        scores = [int(reference_support(T, pairs).sum()) for T in poses]
         return poses[int(np.argmax(scores))] if poses else None
 
     hypotheses: list[NDArray[np.float64]] = []
