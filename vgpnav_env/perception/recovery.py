@@ -208,21 +208,15 @@ def slide_on_ray(
     return at(best_d), best_d / before
 
 
-def single_pair_fallback(
-    refs: NDArray[np.int64],
-    out: BackboneOutput,
-    T_w: NDArray[np.float64],
-    averaging: MotionAveragingConfig,
-    config: VerifyConfig,
-) -> MotionResult | None:
-    """The pose of the most confident pair alone (a ``single reference`` motion result at backbone
-    scale, to be placed with the ground scale), or None when no pair reaches
+def single_pair_fallback(pairs: Pairs, averaging: MotionAveragingConfig) -> MotionResult | None:
+    """The pose of the most confident of the query's ``pairs`` alone (a ``single reference`` motion
+    result at backbone scale, to be placed with the ground scale), or None when no pair reaches
     ``single_fallback_confidence`` (or the fallback is off)."""
-    thr = config.single_fallback_confidence
+    out, thr = pairs.out, pairs.config.single_fallback_confidence
     if thr is None or float(out.confidence.max(initial=0.0)) < thr:
         return None
     single = replace(averaging, method="single", single_reference="confidence")
-    return average_motion(T_w[refs], out.T_qi, out.confidence, single, scale_valid=out.scale_valid)
+    return average_motion(pairs.T_wi, out.T_qi, out.confidence, single, scale_valid=out.scale_valid)
 
 
 @dataclass(frozen=True)
@@ -331,8 +325,7 @@ def single_pair(perceiver: Perceiver, frame: Frame, loc: Localization) -> Locali
         return None
     cfg = perceiver.config
     with frame.clock.stage("motion_averaging"):
-        motion = single_pair_fallback(loc.references, loc.backbone, perceiver.database.poses, cfg.averaging,
-                                      cfg.verify)  # fmt: skip
+        motion = single_pair_fallback(perceiver.pairs(loc.references, loc.backbone), cfg.averaging)
     if motion is None:
         return None
     return replace(loc, motion=motion, reason="", detail=f"single-pair fallback after: {loc.detail}")
