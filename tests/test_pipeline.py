@@ -354,17 +354,25 @@ def test_pose_at_the_wrong_camera_height_is_rejected(database: Database, query) 
     assert result.detail == "camera height off by +0.50 m"
 
 
+def _global_rounds(database: Database, query, i: int):
+    """Query frame ``i``'s privileged data, the default config at the query height, the references
+    global retrieval chooses (Alg. 1) and the k most similar images it did not choose, in order."""
+    run, depth = query
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    sims = database.index.similarity(run.images[i])
+    first = select_references(sims, database.poses, config.retrieval)
+    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
+    return priv, config, first, untried
+
+
 def test_second_round_tries_the_next_most_similar_images_when_no_pair_passed(
     database: Database, query
 ) -> None:
     run, depth = query
     i = 2
-    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
-    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
-    sims = database.index.similarity(run.images[i])
-    first = select_references(sims, database.poses, config.retrieval)
+    priv, config, first, untried = _global_rounds(database, query, i)
     result = Perceiver(database, _known_failures(first, seed=0), config=config).perceive(run.images[i], priv)
-    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
     assert result.localized and result.references.tolist() == untried
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
@@ -602,11 +610,7 @@ def test_a_global_attempt_lost_with_a_prior_is_retried_around_the_prior(database
     localized by them and verified as any tracked frame (not prior-placed)."""
     run, depth = query
     i = 2
-    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
-    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
-    sims = database.index.similarity(run.images[i])
-    first = select_references(sims, database.poses, config.retrieval)
-    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
+    priv, config, first, untried = _global_rounds(database, query, i)
     failed = [*first.tolist(), *untried]
     perceiver = Perceiver(database, _known_failures(failed, seed=0), config=config)
     perceiver.initialize(run.images[0], Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0]))

@@ -123,6 +123,18 @@ def drive(s: EKFState, actions, fixes=None) -> None:
         s.correct(fix)
 
 
+def turn_left_with_fixes(s: EKFState, yaw: float, xy, images) -> tuple[list[str], float]:
+    """Turn left 15 deg once per image of ``images``, each turn fixed at ``xy`` with the turned yaw:
+    the fix outcomes and the last yaw."""
+    outcomes = []
+    for image in images:
+        yaw += np.radians(15)
+        s.predict(Action.TURN_LEFT, image)
+        s.correct(np.array([*xy, yaw]))
+        outcomes.append(s.fix)
+    return outcomes, yaw
+
+
 def test_ekf_starts_from_a_fix_confirmed_from_another_view():
     """No estimate until ``init_fixes`` (2) fixes agree under the odometry, one of them perceived
     at least 30 deg of turning (or 0.25 m of travel) earlier: a lone wrong first fix (an aliased
@@ -255,12 +267,7 @@ def test_ekf_keeps_a_well_supported_estimate_against_an_aliased_place():
         s.predict(Action.TURN_LEFT, IMAGES[2])
         s.correct(np.array([0.0, 0.0, yaw]))
         assert s.fix == "accepted"
-    outcomes = []
-    for n in range(10):
-        yaw += np.radians(15)
-        s.predict(Action.TURN_LEFT, IMAGES[1 + n % 3])
-        s.correct(np.array([0.0, 1.0, yaw]))
-        outcomes.append(s.fix)
+    outcomes, _ = turn_left_with_fixes(s, yaw, (0.0, 1.0), [IMAGES[1 + n % 3] for n in range(10)])
     assert outcomes == ["rejected"] * 8 + ["reset", "accepted"]
 
 
@@ -371,12 +378,7 @@ def test_ekf_recaptures_a_drifted_estimate_after_kidnap_fixes_despite_its_suppor
     yaw = np.radians(120)
     s.predict(Action.FORWARD, IMAGES[1])  # blocked, yet the image changed: the estimate moves
     s.correct(None)
-    outcomes = []
-    for n in range(4):
-        yaw += np.radians(15)
-        s.predict(Action.TURN_LEFT, IMAGES[2 + n % 2])
-        s.correct(np.array([0.0, 0.0, yaw]))
-        outcomes.append(s.fix)
+    outcomes, _ = turn_left_with_fixes(s, yaw, (0.0, 0.0), [IMAGES[2 + n % 2] for n in range(4)])
     assert outcomes == ["rejected", "rejected", "reset", "accepted"]
     np.testing.assert_allclose(s.estimate[:2], (0.0, 0.0), atol=0.01)
 
