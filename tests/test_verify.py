@@ -11,7 +11,13 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
-from vgpnav_env.perception.recovery import pooled_pairs, slide_on_ray
+from vgpnav_env.perception.recovery import (
+    RecoveryConfig,
+    pooled_pairs,
+    prior_poses,
+    prior_support_floor,
+    slide_on_ray,
+)
 from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import (
     Pairs,
@@ -26,8 +32,6 @@ from vgpnav_env.perception.verify import (
     plausible_scale,
     prior_hypothesis,
     prior_pairs,
-    prior_poses,
-    prior_support_floor,
     refine_pose,
     rival_pairs,
     verify_pose,
@@ -68,8 +72,8 @@ def test_check_scale_replaces_a_ground_scale_far_from_the_rays() -> None:
 
 
 def test_weak_rays_do_not_overrule_a_ground_with_nothing_under_it() -> None:
-    # Home's frames 21 and 79: two nearly parallel rays of weight < 0.1 implied half the scale of a
-    # ground peak with < 1 % of the points under it (the floor); a table top has the floor under it.
+    # Two nearly parallel rays of weight < 0.1 imply half the scale of a ground peak with < 1 % of
+    # the points under it (the floor): the floor stands; a table top has the floor under it.
     config = VerifyConfig(scale_check_ratio=1.5, strong_rays_weight=0.2, max_under_ground=0.03)
     ground = ScaleEstimate(2.0, "ground")
     floor = GroundEstimate(-0.6, 0.1, True, below=0.005)
@@ -85,7 +89,7 @@ def test_weak_rays_do_not_overrule_a_ground_with_nothing_under_it() -> None:
 
 
 def test_a_scale_that_puts_the_scene_millimetres_away_is_no_scale() -> None:
-    # Home's frame 141: rays gave 0.005 m per unit, a median confident depth of 5 mm.
+    # Rays giving 0.005 m per unit put the median confident depth at 5 mm: no scale.
     config = VerifyConfig(min_median_depth_m=0.25)
     rays = ScaleEstimate(0.005, "fallback")
     none = plausible_scale(rays, 1.0, config)
@@ -643,11 +647,10 @@ def test_refine_pose_moves_a_nearby_pose_onto_the_one_the_matches_fit() -> None:
 
 
 def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> None:
-    """Short baselines: the pairs' rotations are right but their translation directions 60 deg off
-    (home's frame 32: rotation 0.1 deg, direction 70 deg), so no two rays meet at the query. Inside a
-    prior 5 cm / 2 deg from the truth, the pairs' rotations at the position the matches fit best
-    are the query's pose, confirmed by all three references; a prior in the other room gives poses
-    no reference confirms."""
+    """Short baselines: the pairs' rotations are right but their translation directions 60 deg off, so
+    no two rays meet at the query. Inside a prior 5 cm / 2 deg from the truth, the pairs' rotations
+    at the position the matches fit best are the query's pose, confirmed by all three references; a
+    prior in the other room gives poses no reference confirms."""
     T_a, T_b, T_wi, out = _aliased_frame("A")
     config = VerifyConfig()
     T_qi = np.array([invert_pose(T_a) @ T for T in T_wi])
@@ -655,7 +658,7 @@ def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> 
     T_qi[:, :3, 3] = T_qi[:, :3, 3] @ turn.T
     out = replace(out, T_qi=T_qi)
     prior = PoseGate(base_pose(T_a) + [0.04, -0.03, np.radians(2.0)], 0.25, np.radians(9.0))
-    hypotheses = prior_poses(Pairs(T_wi, out, CAMERA, config), prior, T_a[2, 3])
+    hypotheses = prior_poses(Pairs(T_wi, out, CAMERA, config), prior, T_a[2, 3], RecoveryConfig())
     assert len(hypotheses) == 1  # the three pairs' rotations are one
     placed = refine_pose(hypotheses[0], Pairs(T_wi, out, CAMERA, config), max_shift=prior.max_distance)
     dt, dr = _errors(placed, T_a)
@@ -664,20 +667,19 @@ def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> 
     assert verdict.ok and verdict.n_supporting == 3, verdict.detail
     # Expected in room B (whose references were not retrieved): the poses there explain nothing.
     in_b = PoseGate(base_pose(T_b) + [0.04, -0.03, np.radians(2.0)], 0.25, np.radians(9.0))
-    in_room_b = prior_poses(Pairs(T_wi, out, CAMERA, config), in_b, T_b[2, 3])
+    in_room_b = prior_poses(Pairs(T_wi, out, CAMERA, config), in_b, T_b[2, 3], RecoveryConfig())
     assert len(in_room_b) == 1
     for T in [*in_room_b, refine_pose(in_room_b[0], Pairs(T_wi, out, CAMERA, config), max_shift=0.25)]:
         assert not verify_pose(T, Pairs(T_wi, out, CAMERA, config), camera_z=T_b[2, 3], prior=in_b).ok
     # A pair turned outside the prior's yaw bound, or rolled, gives no hypothesis.
     turned = PoseGate(base_pose(T_a) + [0.0, 0.0, np.radians(15.0)], 0.25, np.radians(9.0))
-    assert prior_poses(Pairs(T_wi, out, CAMERA, config), turned, T_a[2, 3]) == []
+    assert prior_poses(Pairs(T_wi, out, CAMERA, config), turned, T_a[2, 3], RecoveryConfig()) == []
 
 
 def test_slide_on_ray_moves_a_pose_placed_at_the_wrong_scale_to_where_the_references_see_it() -> None:
-    """The first pair's ray is right but its scale 25 % long (home's frames 104, 105: 0.19, 0.31 m
-    off along a ray 0.2 deg right): the other references' matches put the query back on the truth,
-    and the factor says how far the scale was off. A right pose, a position several rays carry, a
-    truth out of reach or the slide switched off move nothing."""
+    """The first pair's ray is right but its scale 25 % long: the other references' matches put the
+    query back on the truth, and the factor says how far the scale was off. A right pose, a position
+    several rays carry, a truth out of reach or the slide switched off move nothing."""
     T_a, _, T_wi, out = _aliased_frame("A")
     config = VerifyConfig()
     T_qi = np.array([invert_pose(T_a) @ T for T in T_wi])
@@ -686,26 +688,26 @@ def test_slide_on_ray_moves_a_pose_placed_at_the_wrong_scale_to_where_the_refere
     far = T_a.copy()
     far[:3, 3] = centre + 1.25 * (T_a[:3, 3] - centre)
     weights = np.array([1.0, 0.1, 0.0])
-    moved, factor = slide_on_ray(far, Pairs(T_wi, out, CAMERA, config), weights)
+    pairs, recovery = Pairs(T_wi, out, CAMERA, config), RecoveryConfig()
+    moved, factor = slide_on_ray(far, pairs, weights, recovery)
     dt, dr = _errors(moved, T_a)
     assert dt < 0.005 and dr < 1e-3, (dt, dr)
     assert factor == pytest.approx(1 / 1.25, rel=0.01)
-    assert slide_on_ray(T_a, Pairs(T_wi, out, CAMERA, config), weights) is None
-    assert slide_on_ray(far, Pairs(T_wi, out, CAMERA, config), np.array([1.0, 1.0, 0.5])) is None
-    assert slide_on_ray(far, Pairs(T_wi, out, CAMERA, replace(config, ray_slide_share=None)), weights) is None
+    assert slide_on_ray(T_a, pairs, weights, recovery) is None
+    assert slide_on_ray(far, pairs, np.array([1.0, 1.0, 0.5]), recovery) is None
+    assert slide_on_ray(far, pairs, weights, replace(recovery, ray_slide_share=None)) is None
     # The truth 0.145 m away along the ray, beyond a 0.1 m reach: never moved more than the reach.
-    bounded = slide_on_ray(far, Pairs(T_wi, out, CAMERA, replace(config, ray_slide_max_shift=0.1)), weights)
+    bounded = slide_on_ray(far, pairs, weights, replace(recovery, ray_slide_max_shift=0.1))
     assert bounded is None or np.linalg.norm(bounded[0][:3, 3] - far[:3, 3]) <= 0.1 + 1e-9
     with pytest.raises(ValueError, match="ray_slide_share"):
-        VerifyConfig(ray_slide_share=0.0)
+        RecoveryConfig(ray_slide_share=0.0)
 
 
 def test_slide_on_ray_needs_the_other_references_to_support_the_new_place() -> None:
     """A right pose that one pair carries stays where it is when the other references explain fewer
-    than ``min_support_matches`` matches anywhere on the ray (home:2's frame 24 on the temporal run:
-    a single pair's pose 0.011 m off, the other reference's handful of stray matches peaked 0.17 m
-    along the ray and moved it there). With the matches of a real reference the pose placed at a
-    wrong scale still moves."""
+    than ``min_support_matches`` matches anywhere on the ray (a handful of stray matches would peak
+    somewhere along the ray and move a right pose there). With the matches of a real reference the
+    pose placed at a wrong scale still moves."""
     T_a, _, T_wi, out = _aliased_frame("A")
     config = VerifyConfig()
     out = replace(out, T_qi=np.array([invert_pose(T_a) @ T for T in T_wi]))
@@ -715,9 +717,10 @@ def test_slide_on_ray_needs_the_other_references_to_support_the_new_place() -> N
     weights = np.array([1.0, 0.1, 0.0])
     few = replace(out, matches=[out.matches[0], out.matches[1][:12], out.matches[2][:12]])
     assert epipolar_support(T_a, T_wi[1:], few.matches[1:], CAMERA, config.max_epipolar_error_px).sum() >= 20
-    assert slide_on_ray(far, Pairs(T_wi, few, CAMERA, config), weights) is None
-    assert slide_on_ray(T_a, Pairs(T_wi, few, CAMERA, config), weights) is None
-    moved = slide_on_ray(far, Pairs(T_wi, out, CAMERA, config), weights)
+    recovery = RecoveryConfig()
+    assert slide_on_ray(far, Pairs(T_wi, few, CAMERA, config), weights, recovery) is None
+    assert slide_on_ray(T_a, Pairs(T_wi, few, CAMERA, config), weights, recovery) is None
+    moved = slide_on_ray(far, Pairs(T_wi, out, CAMERA, config), weights, recovery)
     assert moved is not None and _errors(moved[0], T_a)[0] < 0.005
 
 
@@ -725,12 +728,12 @@ def test_the_support_a_pose_placed_inside_a_prior_needs_grows_with_the_prior() -
     """``prior_support_per_m`` per metre of the prior's radius, never above the floor without a
     prior (``min_total_support``): 67 matches inside the tightest prior the EKF gives (0.19 m, a
     fix's gate), 140 (the floor) at its widest (0.4 m)."""
-    config = VerifyConfig()
-    assert config.min_total_support == 140 and config.prior_support_per_m == 350.0
-    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config) == 67
-    assert prior_support_floor(PoseGate(np.zeros(3), 0.4, 0.2), config) == 140
-    assert prior_support_floor(PoseGate(np.zeros(3), 1.0, 0.2), config) == 140
-    off = replace(config, prior_support_per_m=None)
-    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), off) == 140
+    config, recovery = VerifyConfig(), RecoveryConfig()
+    assert config.min_total_support == 140 and recovery.prior_support_per_m == 350.0
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config, recovery) == 67
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.4, 0.2), config, recovery) == 140
+    assert prior_support_floor(PoseGate(np.zeros(3), 1.0, 0.2), config, recovery) == 140
+    off = replace(recovery, prior_support_per_m=None)
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config, off) == 140
     with pytest.raises(ValueError, match="prior_support_per_m"):
-        VerifyConfig(prior_support_per_m=0.0)
+        RecoveryConfig(prior_support_per_m=0.0)

@@ -58,6 +58,7 @@ from vgpnav_env.perception.recovery import (
     Frame,
     Outcome,
     Phase,
+    RecoveryConfig,
     pooled_pairs,
     second_round,
 )
@@ -131,7 +132,8 @@ class PerceptionConfig:
     ``averaging.method`` (weighted | single) and ``scale.enabled``.
 
     ``camera_height``: the calibrated camera-to-base height (metres), the metric anchor.
-    ``verify``: the checks and second chances of :mod:`vgpnav_env.perception.verify`.
+    ``verify``: the checks of :mod:`vgpnav_env.perception.verify`; ``recovery``: the second
+    chances of :mod:`vgpnav_env.perception.recovery`.
     """
 
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
@@ -139,6 +141,7 @@ class PerceptionConfig:
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
     verify: VerifyConfig = field(default_factory=VerifyConfig)
+    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     depth: PosedDepthConfig = field(default_factory=PosedDepthConfig)
     camera_height: float = CAMERA_HEIGHT

@@ -6,7 +6,7 @@ value per pose.
 - :mod:`.rivals`: the other places the pairs point to;
 - :mod:`.verdict`: the chain support -> rivals -> :class:`Verdict` (:func:`assess`), once;
 - :mod:`.model`: the calibrated model, evidence -> probability that the pose is right;
-- :mod:`.prior`: pose hypotheses a state estimate's prior proposes;
+- :mod:`.prior`: the rival a state estimate's prior picks, and the pairs that agree with it;
 - :mod:`.scale_checks`: the camera height and scale checks before verification;
 - :mod:`.reasons`: lost reasons and check names (str-valued enums).
 
@@ -17,7 +17,7 @@ a scale (metres per unit) is applied.
 
 from vgpnav_env.perception.verify.config import PoseGate, VerifyConfig
 from vgpnav_env.perception.verify.model import VerificationModel, default_model, fit_model
-from vgpnav_env.perception.verify.prior import prior_hypothesis, prior_pairs, prior_poses, prior_support_floor
+from vgpnav_env.perception.verify.prior import prior_hypothesis, prior_pairs
 from vgpnav_env.perception.verify.reasons import LOST_REASONS, VERIFY_CHECKS, LostReason, VerifyCheck
 from vgpnav_env.perception.verify.rivals import distinct, rival_pairs, rival_poses
 from vgpnav_env.perception.verify.scale_checks import check_height, check_scale, plausible_scale
@@ -65,8 +65,6 @@ __all__ = [
     "plausible_scale",
     "prior_hypothesis",
     "prior_pairs",
-    "prior_poses",
-    "prior_support_floor",
     "reference_support",
     "refine_pose",
     "rival_pairs",
