@@ -33,8 +33,8 @@ def test_posed_depth_is_metric_and_accurate(corner):
 
 
 def test_posed_depth_replaces_a_wrong_pair_geometry(corner):
-    # The backbone swept one reference at a wrong two-view pose (12 deg about the vertical, as
-    # home's frame 90 had): its depth is far off. Swept again at the localized pose with the
+    # The backbone swept one reference at a wrong two-view pose (12 deg about the vertical): its
+    # depth is far off. Swept again at the localized pose with the
     # database's poses, the same images give the right depth.
     query, refs, T_wi, T_wq, depth = corner
     rough = np.random.default_rng(0).choice(depth[depth > 0], 300)
