@@ -34,6 +34,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -534,26 +535,19 @@ class Perceiver:
             self.anchor, self._anchored_by = pose.anchor, [pose.T_wc]  # the first verified pose anchors
         elif self._anchored_by and all(distinct(pose.T_wc, T, self.config.verify) for T in self._anchored_by):
             self._anchored_by, self._floor_votes = [], []  # a pose of another place confirms the anchor
-        result = PerceptionResult(
+        result = _result(
+            loc,
             status="localized",
             reason="",
             T_wc=pose.T_wc,
             points_w=points_w.astype(np.float32),
-            classes=None,
-            references=loc.references,
             scale=pose.scale.scale,
             scale_source=pose.scale.source,
             z_ground=pose.z_ground,
             timings={},
-            motion=loc.motion,
             ground=pose.ground,
-            backbone=loc.backbone,
-            n_confident_pairs=loc.n_confident_pairs,
-            detail=loc.detail,
-            retrieved=loc.retrieved,
             verdict=verdict,
             confidence=verdict.confidence,
-            source=loc.source,
         )
         return Attempt(result, points_w, loc, pose, rival)
 
@@ -834,26 +828,36 @@ class Perceiver:
         return recover_metric_points(points_q, T_wc, scale)
 
 
-def _lost(loc: Localization, clock: Clock, **kw) -> PerceptionResult:
-    """The lost result of ``loc`` (its reason and detail); ``kw``: the pose and ground found before
-    the frame was rejected, if any."""
+def _result(loc: Localization, **fields: Any) -> PerceptionResult:
+    """The result of a frame that went through ``loc`` (its references, motion, backbone output,
+    confident pairs, detail, retrieval and source; no ``classes`` until fused) with the other
+    ``fields``."""
     return PerceptionResult(
-        status="lost",
-        reason=loc.reason,
-        T_wc=kw.pop("T_wc", None),
-        points_w=np.zeros((0, 3), np.float32),
         classes=None,
         references=loc.references,
-        scale=float("nan"),
-        scale_source="none",
-        z_ground=kw.pop("z_ground", float("nan")),
-        timings=clock.stop(),
         motion=loc.motion,
         backbone=loc.backbone,
         n_confident_pairs=loc.n_confident_pairs,
         detail=loc.detail,
         retrieved=loc.retrieved,
         source=loc.source,
+        **fields,
+    )
+
+
+def _lost(loc: Localization, clock: Clock, **kw) -> PerceptionResult:
+    """The lost result of ``loc`` (its reason and detail); ``kw``: the pose and ground found before
+    the frame was rejected, if any."""
+    return _result(
+        loc,
+        status="lost",
+        reason=loc.reason,
+        T_wc=kw.pop("T_wc", None),
+        points_w=np.zeros((0, 3), np.float32),
+        scale=float("nan"),
+        scale_source="none",
+        z_ground=kw.pop("z_ground", float("nan")),
+        timings=clock.stop(),
         **kw,
     )
 
