@@ -5,7 +5,11 @@ with ``update_metric(state, measures)``; its current value is ``metric``. A meas
 others names their uuids in ``depends_on``; :class:`Measurements` resets and updates a scope's
 measures in dependency order (as habitat-lab's ``habitat/tasks/nav/nav.py``). A new metric is one
 class decorated with :func:`register_measure`; the env's ``info``, the navigation protocol's
-episode records, its summaries and its report table pick it up from :data:`MEASURES`.
+episode records, its summaries and its report table pick it up from :data:`MEASURES`. Families of
+measures that differ only in what they read are rows of a table: the map measures
+(``map_precision``, ``map_recall``, ``map_iou``, ``path_phantoms``: :data:`_MAP_MEASURES`) and the
+per-frame fractions of the estimate (``no_estimate``, ``tracked``, ``relocalized``:
+:func:`_register_frame_fraction`).
 
 Scopes (what a measure reads):
 
