@@ -26,11 +26,12 @@ from vgpnav_env.perception.backbones.classical import (
 from vgpnav_env.perception.verify.config import VerifyConfig
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Pairs:
     """The query's pairs with its references that a pose is checked against: the references' poses
     ``T_wi`` (k, 4, 4), the backbone output ``out`` of the query with exactly these references, the
-    ``camera`` and the verification settings ``config``."""
+    ``camera`` and the verification settings ``config``. Immutable; compared by identity (it holds
+    arrays), and its :attr:`own` support is computed once."""
 
     T_wi: NDArray[np.float64]
     out: BackboneOutput
