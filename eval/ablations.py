@@ -210,6 +210,37 @@ def _mark(flag: bool) -> str:
     return "yes" if flag else "no"
 
 
+#: The columns of the report's Table IV and Table V, as (header, record key); the switches (the
+#: first keys, booleans) show as yes / no.
+TABLE_IV_COLUMNS = (
+    ("geometry retrieval", "geometry_retrieval"),
+    ("weighted MA", "weighted_averaging"),
+    ("paper cm", "paper_translation_cm"),
+    ("paper deg", "paper_rotation_deg"),
+    ("ours cm", "translation_cm"),
+    ("ours deg", "rotation_deg"),
+    ("recall 5cm/5deg", "recall_5cm_5deg"),
+    ("lost", "n_lost"),
+)
+TABLE_V_COLUMNS = (
+    ("weighted MA", "weighted_averaging"),
+    ("scale recovery", "scale_recovery"),
+    ("geometry retrieval", "geometry_retrieval"),
+    ("paper Acc", "paper_acc_m"),
+    ("paper Comp", "paper_comp_m"),
+    ("ours Acc", "acc_m"),
+    ("ours Comp", "comp_m"),
+    ("frames", "n_frames"),
+)
+_SWITCHES = ("geometry_retrieval", "weighted_averaging", "scale_recovery")
+
+
+def _table(columns: tuple[tuple[str, str], ...], records: list[dict[str, Any]], fmt: str) -> str:
+    """A Markdown table of ``records`` with the ``columns`` (header, key), numbers as ``fmt``."""
+    rows = [tuple(_mark(r[k]) if k in _SWITCHES else r[k] for _, k in columns) for r in records]
+    return markdown_table([header for header, _ in columns], rows, fmt)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_arguments(parser, queries=20)
     add_backbone_arguments(parser)
@@ -230,65 +261,12 @@ def run(args: argparse.Namespace) -> int:
     for switch in ("retrieval", "averaging", "scale_recovery"):
         settings[switch] = "per configuration"
     settings |= run_settings(clock, workers.where, workers.cpu_seconds)
-    iv = [
-        (
-            _mark(r["geometry_retrieval"]),
-            _mark(r["weighted_averaging"]),
-            r["paper_translation_cm"],
-            r["paper_rotation_deg"],
-            r["translation_cm"],
-            r["rotation_deg"],
-            r["recall_5cm_5deg"],
-            r["n_lost"],
-        )
-        for r in metrics["table_iv"]
-    ]
-    v = [
-        (
-            _mark(r["weighted_averaging"]),
-            _mark(r["scale_recovery"]),
-            _mark(r["geometry_retrieval"]),
-            r["paper_acc_m"],
-            r["paper_comp_m"],
-            r["acc_m"],
-            r["comp_m"],
-            r["n_frames"],
-        )
-        for r in metrics["table_v"]
-    ]
     sections = [
         "Paper Table IV is on 7-Scenes (VGGT backbone), Table V on its Home scene.",
         retrieval_comparison(metrics["configs"]),
         "## Table IV: localization (median over localized queries)\n\n"
-        + markdown_table(
-            [
-                "geometry retrieval",
-                "weighted MA",
-                "paper cm",
-                "paper deg",
-                "ours cm",
-                "ours deg",
-                "recall 5cm/5deg",
-                "lost",
-            ],
-            iv,
-            ".2f",
-        ),
-        "## Table V: metric perception (m)\n\n"
-        + markdown_table(
-            [
-                "weighted MA",
-                "scale recovery",
-                "geometry retrieval",
-                "paper Acc",
-                "paper Comp",
-                "ours Acc",
-                "ours Comp",
-                "frames",
-            ],
-            v,
-            ".3f",
-        ),
+        + _table(TABLE_IV_COLUMNS, metrics["table_iv"], ".2f"),
+        "## Table V: metric perception (m)\n\n" + _table(TABLE_V_COLUMNS, metrics["table_v"], ".3f"),
     ]
     modes = [(mode, *m.values()) for mode, m in metrics["modes"].items()]
     sections.append(

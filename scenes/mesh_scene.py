@@ -48,7 +48,7 @@ from vgpnav_env.scenes.collision import facet_boxes, is_convex_solid, object_col
 from vgpnav_env.scenes.mesh_files import MeshPart, load_parts, referenced_files
 from vgpnav_env.scenes.meshes import STRUCTURE_CATEGORIES
 from vgpnav_env.scenes.scene import Scene, SceneMesh
-from vgpnav_env.scenes.spec import SceneError
+from vgpnav_env.scenes.spec import SceneError, read_data_file
 
 logger = logging.getLogger(__name__)
 
@@ -92,12 +92,7 @@ def mesh_scene_layouts(path: str | Path) -> list[str]:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text())
-    except OSError as e:
-        raise SceneError(f"{path}: cannot read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise SceneError(f"{path}: invalid JSON: {e}") from None
+    data = read_data_file(path, "JSON")
     if not isinstance(data, dict):
         raise SceneError(f"{path}: expected a JSON object with 'structure' and 'objects'")
     return data

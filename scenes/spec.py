@@ -12,11 +12,12 @@ A spec holds the ``base`` layout's objects and named layouts expressed as edits 
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 
@@ -430,13 +431,22 @@ def parse_spec(data: Any, source: str = "<memory>", base_dir: str | Path = ".") 
     )
 
 
+def read_data_file(path: Path, language: Literal["JSON", "YAML"]) -> Any:
+    """The parsed JSON or YAML file ``path``; SceneError ("cannot read" / "invalid JSON|YAML") when
+    it cannot be read or parsed."""
+    if language == "JSON":
+        loads, invalid = json.loads, json.JSONDecodeError
+    else:
+        loads, invalid = yaml.safe_load, yaml.YAMLError
+    try:
+        return loads(path.read_text())
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read: {e}") from None
+    except invalid as e:
+        raise SceneError(f"{path}: invalid {language}: {e}") from None
+
+
 def load_spec(path: str | Path) -> SceneSpec:
     """Read and parse a spec YAML file."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise SceneError(f"{path}: cannot read spec file: {e}") from None
-    except yaml.YAMLError as e:
-        raise SceneError(f"{path}: invalid YAML: {e}") from None
-    return parse_spec(data, source=str(path), base_dir=path.parent)
+    return parse_spec(read_data_file(path, "YAML"), source=str(path), base_dir=path.parent)

@@ -92,6 +92,15 @@ def corner_views(
     return T_wq, np.stack(T_wi), room_corner(seed)
 
 
+def render_corner(camera: PinholeCamera, k: int = 5, seed: int = 0):
+    """The :func:`corner_views` rendered: query RGB, its metric depth (0 = nothing), the ``k``
+    reference RGBs, ``T_wq`` and ``T_wi`` (k, 4, 4)."""
+    T_wq, T_wi, planes = corner_views(camera, k, seed)
+    query, depth = render(planes, camera, T_wq)
+    refs = [render(planes, camera, T)[0] for T in T_wi]
+    return query, depth, refs, T_wq, T_wi
+
+
 def plain_room(seed: int = 0, details: int = 3) -> list[TexturedPlane]:
     """The room corner painted plain (one colour per plane, with a faint shading gradient and
     sensor-like noise), each wall carrying ``details`` small textured posters (0.3-0.5 m)."""

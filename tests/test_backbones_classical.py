@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from backbone_synthetic import corner_views, render
+from backbone_synthetic import render_corner
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, FeatureCache, make_backbone
@@ -16,9 +16,7 @@ K_REFS = 5
 
 @pytest.fixture(scope="module")
 def scene():
-    T_wq, T_wi, planes = corner_views(CAMERA, K_REFS, seed=3)
-    query, query_depth = render(planes, CAMERA, T_wq)
-    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    query, query_depth, refs, T_wq, T_wi = render_corner(CAMERA, K_REFS, seed=3)
     return {"T_qi": invert_pose(T_wq) @ T_wi, "query": query, "depth": query_depth, "refs": refs}
 
 

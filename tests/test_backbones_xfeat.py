@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from backbone_synthetic import corner_views, plain_room, render, room_corner
+from backbone_synthetic import corner_views, plain_room, render, render_corner, room_corner
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig
@@ -94,9 +94,7 @@ def test_plain_walls_with_a_few_details_localize_or_are_lost_never_gross(config:
 
 
 def test_fallback_runs_only_when_too_few_pairs_pass() -> None:
-    T_wq, T_wi, planes = corner_views(CAMERA, 5, seed=3)
-    query = render(planes, CAMERA, T_wq)[0]
-    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    query, _, refs, _, _ = render_corner(CAMERA, 5, seed=3)
     backbone = ClassicalBackbone(ClassicalConfig(threads=1, fallback_pairs=2))
     backbone(query, refs, CAMERA)
     assert backbone.fallback is not None and backbone.fallback._query_memo is None  # all passed

@@ -20,6 +20,7 @@ from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatu
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig
 from vgpnav_env.perception.occupancy import OccupancyConfig
 from vgpnav_env.perception.pipeline import LOST_REASONS, TIMING_KEYS, Perceiver, PerceptionConfig, perceive
+from vgpnav_env.perception.recovery import RecoveryConfig
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex, select_references
 from vgpnav_env.perception.scale_recovery import GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import PoseGate, VerifyConfig
@@ -304,7 +305,7 @@ def test_single_pair_fallback(database: Database, query) -> None:
     on = replace(strict, verify=VerifyConfig(min_supporting_references=1))
     result = Perceiver(database, _one_pair(seed=0), config=on).perceive(run.images[i], priv)
     assert result.localized and result.detail.startswith("single-pair fallback"), result.detail
-    off = replace(on, verify=VerifyConfig(single_fallback_confidence=None))
+    off = replace(on, recovery=RecoveryConfig(single_fallback_confidence=None))
     lost = Perceiver(database, _one_pair(seed=0), config=off).perceive(run.images[i], priv)
     assert lost.status == "lost" and lost.reason == "no consensus"
 
@@ -326,25 +327,23 @@ def test_second_round_verifies_references_around_a_lone_pair(database: Database,
     assert dt < 0.02 and dr < 0.1
     # One round: the lone pair's fallback pose, which one reference alone confirms only when it
     # explains single_reference_support matches.
-    one_round = replace(config, verify=VerifyConfig(second_round_below_inliers=None))
+    one_round = replace(config, recovery=RecoveryConfig(second_round_below_inliers=None))
     single = Perceiver(database, _known_failures(first[1:], seed=0), config=one_round).perceive(
         run.images[i], priv
     )
     assert single.localized and "single-pair fallback" in single.detail, single.detail
     assert single.verdict.n_supporting == 1 and single.verdict.strength >= 100
-    above = VerifyConfig(
-        second_round_below_inliers=None, single_reference_support=single.verdict.strength + 1
+    above = replace(one_round, verify=VerifyConfig(single_reference_support=single.verdict.strength + 1))
+    single = Perceiver(database, _known_failures(first[1:], seed=0), config=above).perceive(
+        run.images[i], priv
     )
-    single = Perceiver(
-        database, _known_failures(first[1:], seed=0), config=replace(config, verify=above)
-    ).perceive(run.images[i], priv)
     assert single.reason == "unverified" and "single-pair fallback" in single.detail
 
 
 def test_pose_at_the_wrong_camera_height_is_rejected(database: Database, query) -> None:
     run, depth = query
-    verify = VerifyConfig(second_round_below_inliers=None, single_fallback_confidence=None)
-    config = PerceptionConfig(camera_height=QUERY_HEIGHT, verify=verify)
+    recovery = RecoveryConfig(second_round_below_inliers=None, single_fallback_confidence=None)
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT, recovery=recovery)
     perceiver = Perceiver(database, SimulatedBackbone(seed=0), config=config)
     perceiver.initialize(run.images[0], Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0]))
     lifted = run.poses[2].copy()
@@ -354,17 +353,25 @@ def test_pose_at_the_wrong_camera_height_is_rejected(database: Database, query) 
     assert result.detail == "camera height off by +0.50 m"
 
 
+def _global_rounds(database: Database, query, i: int):
+    """Query frame ``i``'s privileged data, the default config at the query height, the references
+    global retrieval chooses (Alg. 1) and the k most similar images it did not choose, in order."""
+    run, depth = query
+    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
+    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
+    sims = database.index.similarity(run.images[i])
+    first = select_references(sims, database.poses, config.retrieval)
+    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
+    return priv, config, first, untried
+
+
 def test_second_round_tries_the_next_most_similar_images_when_no_pair_passed(
     database: Database, query
 ) -> None:
     run, depth = query
     i = 2
-    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
-    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
-    sims = database.index.similarity(run.images[i])
-    first = select_references(sims, database.poses, config.retrieval)
+    priv, config, first, untried = _global_rounds(database, query, i)
     result = Perceiver(database, _known_failures(first, seed=0), config=config).perceive(run.images[i], priv)
-    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
     assert result.localized and result.references.tolist() == untried
     dt, dr = errors(result.T_wc, run.poses[i])
     assert dt < 0.02 and dr < 0.1
@@ -491,9 +498,9 @@ def test_a_pose_slides_along_its_ray_only_inside_a_prior(
     database: Database, query, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The slide along a pair's ray (:func:`slide_on_ray`) is tried only when the EKF's prior can
-    bound it: on home:2's paper run it moved frame 57 from 0.47 to 0.75 m off. Without a prior the
-    verified pose stands as averaged, even when a slide is on offer; inside a prior the verified
-    slid pose is the result."""
+    bound it (unbounded, a slide can move a pose farther off). Without a prior the verified pose
+    stands as averaged, even when a slide is on offer; inside a prior the verified slid pose is the
+    result."""
     run, _ = query
     T = run.poses[2]
     offered: list[np.ndarray] = []
@@ -527,7 +534,7 @@ def _no_consensus(database: Database, query) -> tuple[Perceiver, list[Privileged
     failing = replace(
         config,
         averaging=MotionAveragingConfig(min_consensus=100),
-        verify=VerifyConfig(single_fallback_confidence=None),
+        recovery=RecoveryConfig(single_fallback_confidence=None),
     )
     perceiver = Perceiver(database, classical, config=failing)
     perceiver.reset(anchored.anchor)
@@ -568,26 +575,28 @@ def test_a_pose_placed_inside_a_tight_prior_needs_less_support_than_inside_a_wid
 ) -> None:
     """A pose placed inside the prior (:func:`~vgpnav_env.perception.recovery.place_on_prior`) whose
     references explain fewer matches than the floor without a prior is kept when the prior is tight enough
-    (:func:`prior_support_floor`: ``prior_support_per_m`` per metre of its radius; home:2's frame 28
-    on the temporal run, 0.021 m off with 109 matches inside a 0.23 m prior); never without the
-    scaled floor, nor inside a prior in the wrong place."""
+    (:func:`~vgpnav_env.perception.recovery.prior_support_floor`: ``prior_support_per_m`` per metre
+    of its radius); never without the scaled floor, nor inside a prior in the wrong place."""
     run, _ = query
     i, T = 2, run.poses[2]
     base, priv = _no_consensus(database, query)
-    failing = base.config.verify
     prior = PoseGate(base_pose(T) + [0.06, -0.04, np.radians(3.0)], 0.25, np.radians(9.0))
 
-    def perceiver(verify: VerifyConfig) -> Perceiver:
-        p = Perceiver(database, base.backbone, config=replace(base.config, verify=verify))
+    def perceiver(per_m: float | None) -> Perceiver:
+        config = replace(
+            base.config,
+            verify=replace(base.config.verify, min_total_support=strength + 1),
+            recovery=replace(base.config.recovery, prior_support_per_m=per_m),
+        )
+        p = Perceiver(database, base.backbone, config=config)
         p.reset(base.anchor)
         return p
 
     strength = base.perceive(run.images[i], priv[1], prior=prior).verdict.strength
     # The floor without a prior just above the placed pose's support: it fails that alone.
-    strict = replace(failing, min_total_support=strength + 1, prior_support_per_m=None)
-    lost = perceiver(strict).perceive(run.images[i], priv[1], prior=prior)
+    lost = perceiver(None).perceive(run.images[i], priv[1], prior=prior)
     assert lost.status == "lost" and not lost.prior_placed, lost.detail
-    tight = replace(strict, prior_support_per_m=strength / 0.3)  # floor 0.83 x strength at 0.25 m
+    tight = strength / 0.3  # floor 0.83 x strength at 0.25 m
     placed = perceiver(tight).perceive(run.images[i], priv[1], prior=prior)
     assert placed.localized and placed.prior_placed and "placed inside the prior" in placed.detail
     dt, dr = errors(placed.T_wc, T)
@@ -602,11 +611,7 @@ def test_a_global_attempt_lost_with_a_prior_is_retried_around_the_prior(database
     localized by them and verified as any tracked frame (not prior-placed)."""
     run, depth = query
     i = 2
-    priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])
-    config = PerceptionConfig(camera_height=QUERY_HEIGHT)
-    sims = database.index.similarity(run.images[i])
-    first = select_references(sims, database.poses, config.retrieval)
-    untried = [j for j in np.argsort(-sims, kind="stable") if j not in first][: config.retrieval.k]
+    priv, config, first, untried = _global_rounds(database, query, i)
     failed = [*first.tolist(), *untried]
     perceiver = Perceiver(database, _known_failures(failed, seed=0), config=config)
     perceiver.initialize(run.images[0], Privileged(run.poses[0], np.zeros((0, 4, 4)), depth[0]))
@@ -694,10 +699,10 @@ def test_only_a_verified_pose_anchors_the_ground(database: Database, query) -> N
 def test_a_pose_the_rays_place_stands_without_a_scale_and_maps_nothing(
     database: Database, query, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """No ground peak and no ray-implied scale (home's temporal frames 22 and 166, 0.06 and 0.01 m
-    off, were lost for it): the pose motion averaging triangulated from the references' metric
-    poses is verified like any other and localized without points (scale "none"); a single pair's
-    pose, which only the ground's scale places along its ray, stays lost ("no ground")."""
+    """No ground peak and no ray-implied scale: the pose motion averaging triangulated from the
+    references' metric poses is verified like any other and localized without points (scale
+    "none"); a single pair's pose, which only the ground's scale places along its ray, stays lost
+    ("no ground")."""
     run, depth = query
     i = 2
     priv = Privileged(run.poses[i], np.zeros((0, 4, 4)), depth[i])

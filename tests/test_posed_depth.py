@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from backbone_synthetic import corner_views, render
+from backbone_synthetic import render_corner
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, transform_points
 from vgpnav_env.perception.backbones.stereo import plane_sweep
@@ -16,9 +16,7 @@ CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 @pytest.fixture(scope="module")
 def corner():
     """Query pose and image, five references at their world poses, the true query depth (metres)."""
-    T_wq, T_wi, planes = corner_views(CAMERA, 5, seed=3)
-    query, depth = render(planes, CAMERA, T_wq)
-    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    query, depth, refs, T_wq, T_wi = render_corner(CAMERA, 5, seed=3)
     return query, refs, T_wi, T_wq, depth
 
 
@@ -35,8 +33,8 @@ def test_posed_depth_is_metric_and_accurate(corner):
 
 
 def test_posed_depth_replaces_a_wrong_pair_geometry(corner):
-    # The backbone swept one reference at a wrong two-view pose (12 deg about the vertical, as
-    # home's frame 90 had): its depth is far off. Swept again at the localized pose with the
+    # The backbone swept one reference at a wrong two-view pose (12 deg about the vertical): its
+    # depth is far off. Swept again at the localized pose with the
     # database's poses, the same images give the right depth.
     query, refs, T_wi, T_wq, depth = corner
     rough = np.random.default_rng(0).choice(depth[depth > 0], 300)

@@ -88,12 +88,17 @@ def test_noisy_depth_still_finds_the_floor() -> None:
     assert np.max(np.abs(errors)) < 0.02, errors
 
 
-def test_table_top_does_not_replace_the_floor() -> None:
-    """A table top with twice the floor's points peaks higher; the floor below still wins."""
+def _table_scene():
+    """A camera 45 deg down over a floor with a 0.75 m table top (backbone units): T_wc, points."""
     rng = np.random.default_rng(1)
     table = [(np.array([0.6, -1.5, 0.0]), np.array([2.0, 1.5, 0.75]))]
     T_wc = camera_pose([0.0, 0.0, CAMERA_HEIGHT], 0.0, np.deg2rad(45))
-    pts = backbone_points(T_wc, rng, boxes=table)
+    return T_wc, backbone_points(T_wc, rng, boxes=table)
+
+
+def test_table_top_does_not_replace_the_floor() -> None:
+    """A table top with twice the floor's points peaks higher; the floor below still wins."""
+    T_wc, pts = _table_scene()
     g = ground_peak(pts, T_wc[:3, :3])
     assert g.found and g.height_b == pytest.approx(-CAMERA_HEIGHT * UNKNOWN_SCALE, rel=0.01)
     # Strictly the dominant peak (relative_peak_support=1) is the table top, 0.45 m below the camera.
@@ -103,10 +108,7 @@ def test_table_top_does_not_replace_the_floor() -> None:
 
 def test_points_under_a_table_top_tell_it_from_the_floor() -> None:
     """Nothing lies under the floor; a table top taken for the ground has the floor under it."""
-    rng = np.random.default_rng(1)
-    table = [(np.array([0.6, -1.5, 0.0]), np.array([2.0, 1.5, 0.75]))]
-    T_wc = camera_pose([0.0, 0.0, CAMERA_HEIGHT], 0.0, np.deg2rad(45))
-    pts = backbone_points(T_wc, rng, boxes=table)
+    T_wc, pts = _table_scene()
     floor = ground_peak(pts, T_wc[:3, :3])
     top = ground_peak(pts, T_wc[:3, :3], config=ScaleConfig(relative_peak_support=1.0))
     h = pts.reshape(-1, 3) @ T_wc[2, :3]  # heights (backbone units) in the gravity frame

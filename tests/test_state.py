@@ -123,11 +123,23 @@ def drive(s: EKFState, actions, fixes=None) -> None:
         s.correct(fix)
 
 
+def turn_left_with_fixes(s: EKFState, yaw: float, xy, images) -> tuple[list[str], float]:
+    """Turn left 15 deg once per image of ``images``, each turn fixed at ``xy`` with the turned yaw:
+    the fix outcomes and the last yaw."""
+    outcomes = []
+    for image in images:
+        yaw += np.radians(15)
+        s.predict(Action.TURN_LEFT, image)
+        s.correct(np.array([*xy, yaw]))
+        outcomes.append(s.fix)
+    return outcomes, yaw
+
+
 def test_ekf_starts_from_a_fix_confirmed_from_another_view():
     """No estimate until ``init_fixes`` (2) fixes agree under the odometry, one of them perceived
     at least 30 deg of turning (or 0.25 m of travel) earlier: a lone wrong first fix (an aliased
-    place) does not start the episode there, nor do consistent fixes of one view (home seed 0 and
-    hospital seed 19 started metres off from the views at reset); the next view's does."""
+    place) does not start the episode there, nor do consistent fixes of one view (an aliased view
+    repeats its error); the next view's does."""
     s = ekf()
     s.correct(None)
     np.testing.assert_array_equal(s.estimate, (1.0, 2.0, 0.0))
@@ -206,9 +218,8 @@ def test_ekf_blocked_forward_step_moves_nothing():
 def test_ekf_bumped_step_covers_any_stop_along_the_step():
     """A forward step that bumped while its image changed stopped anywhere along the step (the
     env stops a blocked motion at its last free pose): half a step, the along-track variance of a
-    uniform over the step (0.25^2 / 12) added, so that right fixes where the robot stayed (home's
-    A* test episode: 5 mm travelled, the estimate ran 0.245 m ahead and the right fixes were
-    rejected) and where it went a full step are both accepted."""
+    uniform over the step (0.25^2 / 12) added, so that right fixes where the robot stayed and where
+    it went a full step are both accepted."""
     for moved in (0.0, 0.125, 0.25):
         s = started()
         s.predict(Action.FORWARD, IMAGES[1], bumped=True)
@@ -238,7 +249,7 @@ def test_ekf_rejects_a_gross_fix_and_relocalizes_after_repeated_consistent_ones(
 
 
 def test_ekf_keeps_a_well_supported_estimate_against_an_aliased_place():
-    """An aliased place (home seed 8: views 1 m to the side of the true pose): after 10 accepted
+    """An aliased place (views 1 m to the side of the true pose): after 10 accepted
     fixes, runs of 3 consistent wrong fixes with a right one between them never relocalize, and a
     kidnapping still does once its fixes outnumber the estimate's support (capped at 8)."""
     s = started()
@@ -255,24 +266,18 @@ def test_ekf_keeps_a_well_supported_estimate_against_an_aliased_place():
         s.predict(Action.TURN_LEFT, IMAGES[2])
         s.correct(np.array([0.0, 0.0, yaw]))
         assert s.fix == "accepted"
-    outcomes = []
-    for n in range(10):
-        yaw += np.radians(15)
-        s.predict(Action.TURN_LEFT, IMAGES[1 + n % 3])
-        s.correct(np.array([0.0, 1.0, yaw]))
-        outcomes.append(s.fix)
+    outcomes, _ = turn_left_with_fixes(s, yaw, (0.0, 1.0), [IMAGES[1 + n % 3] for n in range(10)])
     assert outcomes == ["rejected"] * 8 + ["reset", "accepted"]
 
 
 def test_ekf_keeps_its_estimate_against_consistent_wrong_fixes_of_one_spot():
-    """Hospital seed 4 (step 373 on): turning in place before and after a bumped push into a wall,
-    the images verified one wrong pose again and again, 0.44 m ahead along the view and 10 deg
-    off; three consistent ones within ``drift_m`` reset the estimate there, the EKF then accepted
-    the fixes around it and the robot drove up to 0.53 m off for 60 steps. Fixes of the spot the
-    robot stands on, turned less than ``init_view_deg`` net (a blocked step moved nothing for
-    sure), are one view: they do not relocalize, and the estimate stays within the half step the
-    bump may have moved. (Turning to and fro there longer, the yaw variance grows by each turn's
-    and the fourth pair of turns lets a wrong fix through the Mahalanobis gate: not covered.)"""
+    """Turning in place before and after a bumped push into a wall, the images verify one wrong pose
+    again and again, 0.44 m ahead along the view and 10 deg off; three consistent ones within
+    ``drift_m`` would reset the estimate there. Fixes of the spot the robot stands on, turned less
+    than ``init_view_deg`` net (a blocked step moved nothing for sure), are one view: they do not
+    relocalize, and the estimate stays within the half step the bump may have moved. (Turning to and
+    fro there longer, the yaw variance grows by each turn's and the fourth pair of turns lets a
+    wrong fix through the Mahalanobis gate: not covered.)"""
     s = started()
     yaws = [np.radians(15) * (n + 1) for n in range(8)]
     drive(s, [Action.TURN_LEFT] * 8, [np.array([0.0, 0.0, yaw]) for yaw in yaws])
@@ -371,12 +376,7 @@ def test_ekf_recaptures_a_drifted_estimate_after_kidnap_fixes_despite_its_suppor
     yaw = np.radians(120)
     s.predict(Action.FORWARD, IMAGES[1])  # blocked, yet the image changed: the estimate moves
     s.correct(None)
-    outcomes = []
-    for n in range(4):
-        yaw += np.radians(15)
-        s.predict(Action.TURN_LEFT, IMAGES[2 + n % 2])
-        s.correct(np.array([0.0, 0.0, yaw]))
-        outcomes.append(s.fix)
+    outcomes, _ = turn_left_with_fixes(s, yaw, (0.0, 0.0), [IMAGES[2 + n % 2] for n in range(4)])
     assert outcomes == ["rejected", "rejected", "reset", "accepted"]
     np.testing.assert_allclose(s.estimate[:2], (0.0, 0.0), atol=0.01)
 
@@ -397,8 +397,7 @@ def test_ekf_prior_is_its_fix_gate_while_its_position_is_narrower_than_a_gross_e
     inside = s.prior().pose + [0.9 * s.prior().max_distance, 0.0, 0.0]
     assert s.prior().admits(_camera(inside)) and s.mahalanobis2(inside) <= cfg.gate_chi2
     # Turning while lost widens the yaw bound (1.5 deg of sigma per 15 deg turn), past 25 deg after
-    # 17 turns: no prior. (15 deg, past after 4, cut home:2's prior on frames 22-25 while the
-    # estimate's yaw was 4-5 deg off and its position 0.06 m.)
+    # 17 turns: no prior (an estimate 4-5 deg off in yaw after a few turns still bounds the pose).
     turns = 0
     while s.prior() is not None:
         s.predict(Action.TURN_LEFT, IMAGES[1 + turns % 3])

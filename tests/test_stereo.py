@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from backbone_synthetic import corner_views, render
+from backbone_synthetic import render_corner
 from scipy.spatial.transform import Rotation
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
@@ -18,9 +18,7 @@ CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 @pytest.fixture(scope="module")
 def corner():
     """Query, five references with their exact poses T_iq, the true query depth and sparse depths."""
-    T_wq, T_wi, planes = corner_views(CAMERA, 5, seed=3)
-    query, depth = render(planes, CAMERA, T_wq)
-    refs = [render(planes, CAMERA, T)[0] for T in T_wi]
+    query, depth, refs, T_wq, T_wi = render_corner(CAMERA, 5, seed=3)
     sparse = np.random.default_rng(0).choice(depth[depth > 0], 300)
     return query, refs, invert_pose(T_wi) @ T_wq, depth, sparse
 

@@ -37,26 +37,27 @@ def parent_env(walled_room):
 
 
 def _check_gym_vector(envs, first_rgb) -> None:
-    obs, _ = envs.reset(seed=[0, 1])
-    assert obs["rgb"].shape == (2, SIZE[1], SIZE[0], 3)
-    np.testing.assert_array_equal(obs["rgb"][0], first_rgb)
-    dones = []
-    for _ in range(MAX_STEPS + 2):
-        obs, _, terminated, truncated, _ = envs.step(np.array([2, 3]))
-        dones.append(terminated | truncated)
-    # Truncated after MAX_STEPS steps; the next step resets (Gymnasium's next-step autoreset).
-    assert np.asarray(dones)[MAX_STEPS - 1].all() and not np.asarray(dones)[MAX_STEPS].any()
-    assert obs["rgb"].std() > 0  # the workers really render
+    """Reset and step the two-env vector ``envs`` past a truncation, then close it."""
+    try:
+        obs, _ = envs.reset(seed=[0, 1])
+        assert obs["rgb"].shape == (2, SIZE[1], SIZE[0], 3)
+        np.testing.assert_array_equal(obs["rgb"][0], first_rgb)
+        dones = []
+        for _ in range(MAX_STEPS + 2):
+            obs, _, terminated, truncated, _ = envs.step(np.array([2, 3]))
+            dones.append(terminated | truncated)
+        # Truncated after MAX_STEPS steps; the next step resets (Gymnasium's next-step autoreset).
+        assert np.asarray(dones)[MAX_STEPS - 1].all() and not np.asarray(dones)[MAX_STEPS].any()
+        assert obs["rgb"].std() > 0  # the workers really render
+    finally:
+        envs.close()
 
 
 def test_async_vector_env_default_context_after_parent_env(parent_env, walled_room):
     assert multiprocessing.get_start_method() == "fork"  # Gymnasium's default on Linux
     env, first = parent_env
     envs = gym.vector.AsyncVectorEnv([lambda: _make(walled_room)] * 2)
-    try:
-        _check_gym_vector(envs, first)
-    finally:
-        envs.close()
+    _check_gym_vector(envs, first)
 
 
 def test_make_vec_async_after_parent_env(parent_env, walled_room):
@@ -69,10 +70,7 @@ def test_make_vec_async_after_parent_env(parent_env, walled_room):
         image_size=SIZE,
         max_steps=MAX_STEPS,
     )
-    try:
-        _check_gym_vector(envs, first)
-    finally:
-        envs.close()
+    _check_gym_vector(envs, first)
 
 
 def test_sb3_subproc_vec_env_fork_after_parent_env(parent_env, walled_room):

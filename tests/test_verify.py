@@ -11,9 +11,16 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
-from vgpnav_env.perception.recovery import pooled_pairs, slide_on_ray
+from vgpnav_env.perception.recovery import (
+    RecoveryConfig,
+    pooled_pairs,
+    prior_poses,
+    prior_support_floor,
+    slide_on_ray,
+)
 from vgpnav_env.perception.scale_recovery import GroundAnchor, GroundEstimate, ScaleEstimate
 from vgpnav_env.perception.verify import (
+    Pairs,
     PoseGate,
     VerifyConfig,
     check_height,
@@ -25,8 +32,6 @@ from vgpnav_env.perception.verify import (
     plausible_scale,
     prior_hypothesis,
     prior_pairs,
-    prior_poses,
-    prior_support_floor,
     refine_pose,
     rival_pairs,
     verify_pose,
@@ -67,8 +72,8 @@ def test_check_scale_replaces_a_ground_scale_far_from_the_rays() -> None:
 
 
 def test_weak_rays_do_not_overrule_a_ground_with_nothing_under_it() -> None:
-    # Home's frames 21 and 79: two nearly parallel rays of weight < 0.1 implied half the scale of a
-    # ground peak with < 1 % of the points under it (the floor); a table top has the floor under it.
+    # Two nearly parallel rays of weight < 0.1 imply half the scale of a ground peak with < 1 % of
+    # the points under it (the floor): the floor stands; a table top has the floor under it.
     config = VerifyConfig(scale_check_ratio=1.5, strong_rays_weight=0.2, max_under_ground=0.03)
     ground = ScaleEstimate(2.0, "ground")
     floor = GroundEstimate(-0.6, 0.1, True, below=0.005)
@@ -84,7 +89,7 @@ def test_weak_rays_do_not_overrule_a_ground_with_nothing_under_it() -> None:
 
 
 def test_a_scale_that_puts_the_scene_millimetres_away_is_no_scale() -> None:
-    # Home's frame 141: rays gave 0.005 m per unit, a median confident depth of 5 mm.
+    # Rays giving 0.005 m per unit put the median confident depth at 5 mm: no scale.
     config = VerifyConfig(min_median_depth_m=0.25)
     rays = ScaleEstimate(0.005, "fallback")
     none = plausible_scale(rays, 1.0, config)
@@ -159,7 +164,7 @@ def test_identical_rooms_are_ambiguous_never_the_wrong_room() -> None:
     T_a, T_b, T_wi, out = _aliased_frame("AB")
     config = VerifyConfig()
     for pose, rival in ((T_a, T_b), (T_b, T_a)):
-        verdict = verify_pose(pose, T_wi, out, CAMERA, config, rivals=[rival])
+        verdict = verify_pose(pose, Pairs(T_wi, out, CAMERA, config), rivals=[rival])
         assert not verdict.ok and verdict.reason == "ambiguous" and verdict.check == "ambiguity", (
             verdict.detail
         )
@@ -167,7 +172,7 @@ def test_identical_rooms_are_ambiguous_never_the_wrong_room() -> None:
         assert verdict.rival_strength >= 0.5 * verdict.strength > 3 * config.min_support_matches
     # Only room A's references: the right room is confirmed by all three, with high confidence.
     T_a, T_b, T_wi, out = _aliased_frame("A")
-    right = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b])
+    right = verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b])
     assert right.ok and right.n_supporting == 3 and right.rival_strength == 0 and right.confidence > 0.8
 
 
@@ -186,18 +191,18 @@ def test_a_rival_room_with_few_views_but_a_pair_as_confident_makes_the_frame_amb
     config = VerifyConfig()
     assert config.rival_confidence_ratio == 0.9
     old = replace(config, rival_confidence_ratio=None)
-    before = verify_pose(T_b, T_wi, out, CAMERA, old, rivals=[T_a])
+    before = verify_pose(T_b, Pairs(T_wi, out, CAMERA, old), rivals=[T_a])
     # The rule before rival_confidence_ratio: room A is a weaker rival and the wrong room is confirmed.
     assert before.ok and before.rival_strength < config.ambiguity_ratio * 2 * before.support.max()
-    wrong = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a])
+    wrong = verify_pose(T_b, Pairs(T_wi, out, CAMERA, config), rivals=[T_a])
     assert not wrong.ok and wrong.reason == "ambiguous" and wrong.check == "ambiguity", wrong.detail
     assert "as confident as the pose's best" in wrong.detail and "10.0 m away" in wrong.detail
     # Room A's pair weak (0.2 < 0.9 x 0.5): the support comparison alone decides, as before.
     weak = replace(out, confidence=np.array([0.5, 0.3, 0.3, 0.2]))
-    assert verify_pose(T_b, T_wi, weak, CAMERA, config, rivals=[T_a]).ok
+    assert verify_pose(T_b, Pairs(T_wi, weak, CAMERA, config), rivals=[T_a]).ok
     # A rival whose matches lie on one plane is no place, however confident its pair.
     flat = replace(config, confident_rival_off_plane=10_000)
-    assert verify_pose(T_b, T_wi, out, CAMERA, flat, rivals=[T_a]).ok
+    assert verify_pose(T_b, Pairs(T_wi, out, CAMERA, flat), rivals=[T_a]).ok
     with pytest.raises(ValueError, match="rival_confidence_ratio"):
         VerifyConfig(rival_confidence_ratio=0.0)
     with pytest.raises(ValueError, match="confident_rival_off_plane"):
@@ -211,19 +216,22 @@ def test_a_confident_prior_picks_the_room_the_robot_is_in_never_the_other() -> N
     # room B's equal support no longer makes room A's pose ambiguous; it is confirmed.
     expected = base_pose(T_a) + [0.1, 0.0, np.radians(3.0)]
     prior = PoseGate(expected, 0.25, np.radians(9.0))
-    right = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=prior)
+    right = verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b], prior=prior)
     assert right.ok and right.rival_strength == 0 and right.support[:3].all(), right.detail
     # ...by the prior alone: without it room B makes the same pose ambiguous.
-    assert right.by_prior and verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b]).reason == "ambiguous"
+    assert (
+        right.by_prior
+        and verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b]).reason == "ambiguous"
+    )
     # Room B's pose lies outside the prior: verified as without one, still ambiguous (never room B).
-    wrong = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a], prior=prior)
+    wrong = verify_pose(T_b, Pairs(T_wi, out, CAMERA, config), rivals=[T_a], prior=prior)
     assert not wrong.ok and wrong.reason == "ambiguous"
     # A prior around room B confirms nothing in room A, and picks B only where B is expected.
     away = PoseGate(base_pose(T_b), 0.25, np.radians(9.0))
-    assert verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=away).reason == "ambiguous"
+    assert verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b], prior=away).reason == "ambiguous"
     # A rival inside the prior still counts: a prior wide enough for both rooms separates nothing.
     both = PoseGate(0.5 * (base_pose(T_a) + base_pose(T_b)), 6.0, np.radians(9.0))
-    assert verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b], prior=both).reason == "ambiguous"
+    assert verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b], prior=both).reason == "ambiguous"
 
 
 def test_the_prior_picks_the_rival_in_the_room_the_robot_is_in() -> None:
@@ -231,9 +239,9 @@ def test_the_prior_picks_the_rival_in_the_room_the_robot_is_in() -> None:
     config, averaging = VerifyConfig(), MotionAveragingConfig()
     # The averaged pose landed in room B; room A's view is its rival. The robot is expected in A.
     prior = PoseGate(base_pose(T_a) + [0.05, -0.05, np.radians(2.0)], 0.25, np.radians(9.0))
-    assert verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a], prior=prior).reason == "ambiguous"
+    assert verify_pose(T_b, Pairs(T_wi, out, CAMERA, config), rivals=[T_a], prior=prior).reason == "ambiguous"
     T, verdict = prior_hypothesis(
-        T_b, [T_a], T_wi, out, CAMERA, config, prior, scale=1.0, averaging=averaging
+        T_b, [T_a], Pairs(T_wi, out, CAMERA, config), prior, scale=1.0, averaging=averaging
     )
     assert T is T_a and verdict.ok and verdict.support[:3].all(), verdict.detail
     # Expected in B (the pose's own room) or elsewhere: no rival inside the prior, nothing picked.
@@ -241,7 +249,9 @@ def test_the_prior_picks_the_rival_in_the_room_the_robot_is_in() -> None:
     elsewhere = PoseGate(base_pose(T_a) + [3.0, 0.0, 0.0], 0.25, np.radians(9.0))
     for other in (in_b, elsewhere):
         assert (
-            prior_hypothesis(T_b, [T_a], T_wi, out, CAMERA, config, other, scale=1.0, averaging=averaging)
+            prior_hypothesis(
+                T_b, [T_a], Pairs(T_wi, out, CAMERA, config), other, scale=1.0, averaging=averaging
+            )
             is None
         )
     # A rival inside the prior that the images do not confirm is not picked (room A's references only
@@ -251,7 +261,9 @@ def test_the_prior_picks_the_rival_in_the_room_the_robot_is_in() -> None:
     off = camera_pose(T_a[:3, 3], np.deg2rad(53.0), np.deg2rad(20.0))
     wide = PoseGate(base_pose(T_a), 0.3, np.radians(9.0))
     assert (
-        prior_hypothesis(T_b, [off], T_wi_a, out_a, CAMERA, config, wide, scale=1.0, averaging=averaging)
+        prior_hypothesis(
+            T_b, [off], Pairs(T_wi_a, out_a, CAMERA, config), wide, scale=1.0, averaging=averaging
+        )
         is None
     )
 
@@ -285,52 +297,52 @@ def test_a_pose_inside_the_prior_needs_supporting_references_not_the_total_floor
         scale_valid=out.scale_valid[:2], matches=[m[:40] for m in out.matches[:2]],
     )  # fmt: skip
     config = VerifyConfig()
-    alone = verify_pose(T_a, T_wi[:2], two, CAMERA, config)
+    alone = verify_pose(T_a, Pairs(T_wi[:2], two, CAMERA, config))
     assert alone.reason == "unverified" and alone.check == "support" and "only 80" in alone.detail
     prior = PoseGate(base_pose(T_a), 0.25, np.radians(9.0))
-    placed = verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=prior)
+    placed = verify_pose(T_a, Pairs(T_wi[:2], two, CAMERA, config), prior=prior)
     assert placed.ok and placed.strength >= 75 and "inside the prior" in placed.detail and placed.by_prior
     # All references of the room: the images confirm the pose alone, the prior adds nothing.
-    full = verify_pose(T_a, T_wi, out, CAMERA, config, prior=prior)
-    assert full.ok and not full.by_prior and verify_pose(T_a, T_wi, out, CAMERA, config).ok
+    full = verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), prior=prior)
+    assert full.ok and not full.by_prior and verify_pose(T_a, Pairs(T_wi, out, CAMERA, config)).ok
     # One of them alone (under single_reference_support), or the camera rolled 3 deg (right poses:
     # < 0.5 deg), or outside the prior: unverified.
     one = replace(two, T_qi=two.T_qi[:1], confidence=two.confidence[:1], n_matches=two.n_matches[:1],
                   scale_valid=two.scale_valid[:1], matches=two.matches[:1])  # fmt: skip
-    assert verify_pose(T_a, T_wi[:1], one, CAMERA, config, prior=prior).check == "support"
+    assert verify_pose(T_a, Pairs(T_wi[:1], one, CAMERA, config), prior=prior).check == "support"
     rolled = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(20.0), roll=np.deg2rad(3.0))
-    assert verify_pose(rolled, T_wi[:2], two, CAMERA, config, prior=prior).reason == "unverified"
+    assert verify_pose(rolled, Pairs(T_wi[:2], two, CAMERA, config), prior=prior).reason == "unverified"
     elsewhere = PoseGate(base_pose(T_a) + [0.5, 0.0, 0.0], 0.25, np.radians(9.0))
-    assert verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=elsewhere).check == "support"
+    assert verify_pose(T_a, Pairs(T_wi[:2], two, CAMERA, config), prior=elsewhere).check == "support"
     # The mount check stays: the camera 0.9 m too low is rejected inside the prior too.
-    low = verify_pose(T_a, T_wi[:2], two, CAMERA, config, prior=prior, camera_z=2.1)
+    low = verify_pose(T_a, Pairs(T_wi[:2], two, CAMERA, config), prior=prior, camera_z=2.1)
     assert low.reason == "unverified" and low.check == "mount"
 
 
 def test_pose_from_another_rooms_references_is_rejected() -> None:
     # The query's matches are with room A's references; a pose in room B explains none of them.
     T_a, T_b, T_wi, out = _aliased_frame("A")
-    wrong = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig())
+    wrong = verify_pose(T_b, Pairs(T_wi, out, CAMERA, VerifyConfig()))
     assert not wrong.ok and wrong.reason == "unverified" and wrong.strength == 0 and wrong.confidence == 0
     assert wrong.check == "support"
     # A pose 0.5 m off in the right room explains (almost) nothing either.
     off = T_a.copy()
     off[:3, 3] += [0.5, -0.3, 0.0]
-    assert verify_pose(off, T_wi, out, CAMERA, VerifyConfig()).reason == "unverified"
+    assert verify_pose(off, Pairs(T_wi, out, CAMERA, VerifyConfig())).reason == "unverified"
 
 
 def test_wrong_camera_height_or_tilt_is_rejected() -> None:
     T_a, _, T_wi, out = _aliased_frame("A")
     config = VerifyConfig(pose_height_tolerance=0.3)
-    assert verify_pose(T_a, T_wi, out, CAMERA, config, camera_z=1.1).ok  # 0.1 m high: within 0.3 m
-    low = verify_pose(T_a, T_wi, out, CAMERA, config, camera_z=2.1)
+    assert verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), camera_z=1.1).ok  # 0.1 m high: within 0.3 m
+    low = verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), camera_z=2.1)
     assert (
         low.reason == "unverified" and low.detail == "camera height off by -0.90 m" and low.check == "mount"
     )
     rolled = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(20.0), roll=np.deg2rad(12.0))
-    assert "rolled" in verify_pose(rolled, T_wi, out, CAMERA, config).detail
+    assert "rolled" in verify_pose(rolled, Pairs(T_wi, out, CAMERA, config)).detail
     level = camera_pose(T_a[:3, 3], np.deg2rad(45.0), np.deg2rad(-20.0))  # looking up
-    assert "pitched" in verify_pose(level, T_wi, out, CAMERA, config).detail
+    assert "pitched" in verify_pose(level, Pairs(T_wi, out, CAMERA, config)).detail
 
 
 def test_epipolar_support_counts_the_matches_a_pose_explains() -> None:
@@ -374,17 +386,17 @@ def test_off_plane_support_rejects_a_place_that_only_repeats_a_walls_texture() -
     T_wi_b[:, :3, 3] += SHIFT
     counting_all, plane = VerifyConfig(plane_threshold_px=None), VerifyConfig(plane_threshold_px=2.0)
     # Counting every match, room B's wall texture confirms the wrong room as well as room A does.
-    assert verify_pose(T_b, T_wi_b, out_b, CAMERA, counting_all).ok
+    assert verify_pose(T_b, Pairs(T_wi_b, out_b, CAMERA, counting_all)).ok
     # Off the dominant plane nothing is left of room B's matches: unverified.
     flat = off_plane_matches(out_b, 2.0)
     assert all(len(m) <= 0.05 * n for m, n in zip(flat.matches, out_b.n_matches, strict=True))
-    wrong = verify_pose(T_b, T_wi_b, out_b, CAMERA, plane)
+    wrong = verify_pose(T_b, Pairs(T_wi_b, out_b, CAMERA, plane))
     assert not wrong.ok and wrong.reason == "unverified" and "dominant planes" in wrong.detail
     assert wrong.check == "plane"
     # Room A's references see two walls and the floor: matches stay off the dominant plane.
     kept = np.array([len(m) for m in off_plane_matches(out_a, 2.0).matches])
     assert ((kept >= 0.2 * out_a.n_matches) & (kept <= 0.8 * out_a.n_matches)).all()
-    right = verify_pose(T_a, T_wi_a, out_a, CAMERA, plane)
+    right = verify_pose(T_a, Pairs(T_wi_a, out_a, CAMERA, plane))
     assert right.ok and right.n_supporting == 3 and right.confidence > 0.8
     # Both rooms' references: room B's wall makes a rival as strong as the pose (ambiguous when
     # every match counts); off the plane it is no place, and the right room is kept.
@@ -392,8 +404,8 @@ def test_off_plane_support_rejects_a_place_that_only_repeats_a_walls_texture() -
                    n_matches=np.r_[out_a.n_matches, out_b.n_matches], matches=out_a.matches + out_b.matches,
                    scale_valid=None)  # fmt: skip
     T_wi = np.concatenate([T_wi_a, T_wi_b])
-    assert verify_pose(T_a, T_wi, both, CAMERA, counting_all, rivals=[T_b]).reason == "ambiguous"
-    kept_right = verify_pose(T_a, T_wi, both, CAMERA, plane, rivals=[T_b])
+    assert verify_pose(T_a, Pairs(T_wi, both, CAMERA, counting_all), rivals=[T_b]).reason == "ambiguous"
+    kept_right = verify_pose(T_a, Pairs(T_wi, both, CAMERA, plane), rivals=[T_b])
     assert kept_right.ok and kept_right.rival_strength == 0 and kept_right.support[:3].all()
     # A pair under 8 matches keeps none; an output without matches is returned unchanged.
     few = off_plane_matches(replace(out_a, matches=[m[:7] for m in out_a.matches]), 2.0)
@@ -417,24 +429,24 @@ def test_one_reference_confirms_a_place_only_with_single_reference_support_match
     assert lone >= 100
     # As a rival, the lone pair of room B (half of A's two pairs) makes room A's pose ambiguous...
     config = VerifyConfig(single_reference_support=lone, ambiguity_ratio=0.4)
-    verdict = verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b])
+    verdict = verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b])
     assert verdict.reason == "ambiguous" and verdict.rival_strength == lone, verdict.detail
     # ...but not when one reference must explain more than it does (nor without the rule).
     for single in (lone + 1, None):
         verdict = verify_pose(
-            T_a, T_wi, out, CAMERA, VerifyConfig(single_reference_support=single), rivals=[T_b]
+            T_a, Pairs(T_wi, out, CAMERA, VerifyConfig(single_reference_support=single)), rivals=[T_b]
         )
         assert verdict.ok and verdict.rival_strength == 0, verdict.detail
     # As the pose, B's single pair confirms it only with single_reference_support matches (with
     # the explained-confidence gate off: A's two pairs, as confident, do not explain it)...
     free = VerifyConfig(single_reference_support=lone, min_explained_confidence=None)
-    alone = verify_pose(T_b, T_wi, out, CAMERA, free)
+    alone = verify_pose(T_b, Pairs(T_wi, out, CAMERA, free))
     assert alone.ok and alone.n_supporting == 1 and alone.strength == lone
     for single in (lone + 1, None):
-        alone = verify_pose(T_b, T_wi, out, CAMERA, replace(free, single_reference_support=single))
+        alone = verify_pose(T_b, Pairs(T_wi, out, CAMERA, replace(free, single_reference_support=single)))
         assert alone.reason == "unverified" and "1 reference(s)" in alone.detail
     # ...and the gate rejects it: one third of the pairs' confidence.
-    gated = verify_pose(T_b, T_wi, out, CAMERA, VerifyConfig(single_reference_support=lone))
+    gated = verify_pose(T_b, Pairs(T_wi, out, CAMERA, VerifyConfig(single_reference_support=lone)))
     assert gated.reason == "unverified" and "33% of the pairs' confidence" in gated.detail
 
 
@@ -447,19 +459,19 @@ def test_a_pose_the_most_confident_pairs_do_not_explain_is_rejected() -> None:
     config = VerifyConfig()
     assert config.min_explained_confidence == 0.45
     # Room A's pose explains room A's pairs in full: 3 x 0.9 of 3.3; room B's pose only B's pairs.
-    assert explained_confidence(T_a, T_wi, out, CAMERA, config) == pytest.approx(2.7 / 3.3, abs=0.03)
-    assert explained_confidence(T_b, T_wi, out, CAMERA, config) == pytest.approx(0.6 / 3.3, abs=0.03)
-    assert verify_pose(T_a, T_wi, out, CAMERA, config).ok
+    assert explained_confidence(T_a, Pairs(T_wi, out, CAMERA, config)) == pytest.approx(2.7 / 3.3, abs=0.03)
+    assert explained_confidence(T_b, Pairs(T_wi, out, CAMERA, config)) == pytest.approx(0.6 / 3.3, abs=0.03)
+    assert verify_pose(T_a, Pairs(T_wi, out, CAMERA, config)).ok
     # Room B's weak pairs alone confirm its pose, but the confident pairs see another place.
-    wrong = verify_pose(T_b, T_wi, out, CAMERA, config)
+    wrong = verify_pose(T_b, Pairs(T_wi, out, CAMERA, config))
     assert not wrong.ok and wrong.reason == "unverified" and "18% of the pairs' confidence" in wrong.detail
-    assert wrong.check == "share" and verify_pose(T_a, T_wi, out, CAMERA, config).check == ""
-    assert verify_pose(T_b, T_wi, out, CAMERA, replace(config, min_explained_confidence=None)).ok
+    assert wrong.check == "share" and verify_pose(T_a, Pairs(T_wi, out, CAMERA, config)).check == ""
+    assert verify_pose(T_b, Pairs(T_wi, out, CAMERA, replace(config, min_explained_confidence=None))).ok
     # A pair counts by the share of its own geometry's matches the pose explains: a pose 10 deg
     # of yaw off keeps few of room A's matches.
     turned = camera_pose(T_a[:3, 3], np.deg2rad(55.0), np.deg2rad(20.0))
-    assert explained_confidence(turned, T_wi[:3], replace_first(out, 3), CAMERA, config) < 0.2
-    assert explained_confidence(T_a, T_wi, replace(out, confidence=np.zeros(6)), CAMERA, config) == 0.0
+    assert explained_confidence(turned, Pairs(T_wi[:3], replace_first(out, 3), CAMERA, config)) < 0.2
+    assert explained_confidence(T_a, Pairs(T_wi, replace(out, confidence=np.zeros(6)), CAMERA, config)) == 0.0
     with pytest.raises(ValueError, match="min_explained_confidence"):
         VerifyConfig(min_explained_confidence=0.0)
 
@@ -490,20 +502,20 @@ def test_a_reference_the_pose_explains_in_small_part_still_makes_a_rival() -> No
     )  # fmt: skip
     config = VerifyConfig(min_explained_confidence=None)
     raw = epipolar_support(T_b, T_wi, out.matches, CAMERA, 2.0)
-    own = pair_support(T_wi, out, CAMERA, config)
+    own = pair_support(Pairs(T_wi, out, CAMERA, config))
     assert raw[1] >= 38 and own[1] >= 5 * raw[1], (raw, own)
     # Unexplained references only (the rule before rival_claim_ratio): room A is no rival, and the
     # wrong room is confirmed by two references.
     old = replace(config, rival_claim_ratio=None)
-    assert verify_pose(T_b, T_wi, out, CAMERA, old, rivals=[T_a]).ok
-    assert rival_pairs(raw, T_wi, out, CAMERA, old).tolist() == raw.tolist()
+    assert verify_pose(T_b, Pairs(T_wi, out, CAMERA, old), rivals=[T_a]).ok
+    assert rival_pairs(raw, Pairs(T_wi, out, CAMERA, old)).tolist() == raw.tolist()
     # A's pair, explained by B's pose in under half of what room A's pose explains, is room A's:
     # rival_poses gets it as a pair the pose does not explain, and the frame is ambiguous.
-    assert rival_pairs(raw, T_wi, out, CAMERA, config).tolist() == [raw[0], 0]
-    verdict = verify_pose(T_b, T_wi, out, CAMERA, config, rivals=[T_a])
+    assert rival_pairs(raw, Pairs(T_wi, out, CAMERA, config)).tolist() == [raw[0], 0]
+    verdict = verify_pose(T_b, Pairs(T_wi, out, CAMERA, config), rivals=[T_a])
     assert verdict.reason == "ambiguous" and verdict.rival_strength >= own[1] - 5, verdict.detail
     # Room A's pose is ambiguous too (room B's reference), never confirmed as the only place.
-    assert verify_pose(T_a, T_wi, out, CAMERA, config, rivals=[T_b]).reason == "ambiguous"
+    assert verify_pose(T_a, Pairs(T_wi, out, CAMERA, config), rivals=[T_b]).reason == "ambiguous"
     with pytest.raises(ValueError, match="rival_claim_ratio"):
         VerifyConfig(rival_claim_ratio=1.5)
 
@@ -526,9 +538,11 @@ def test_ambiguity_compares_the_strongest_references_of_each_place() -> None:
     )
     # Summed over all references, three views of B (664, 670, 530 matches) outweigh A's one
     # (664): B is confirmed, wrongly (without rival_confidence_ratio: A's pair is as confident).
-    assert verify_pose(T_b, T_wi, out, CAMERA, summed, rivals=[T_a]).ok
+    assert verify_pose(T_b, Pairs(T_wi, out, CAMERA, summed), rivals=[T_a]).ok
     # The two strongest references of each place: A's lone view against B's two, ambiguous.
-    verdict = verify_pose(T_b, T_wi, out, CAMERA, replace(summed, ambiguity_references=2), rivals=[T_a])
+    verdict = verify_pose(
+        T_b, Pairs(T_wi, out, CAMERA, replace(summed, ambiguity_references=2)), rivals=[T_a]
+    )
     assert verdict.reason == "ambiguous", verdict.detail
     assert VerifyConfig().ambiguity_references == 2
     with pytest.raises(ValueError, match="ambiguity_references"):
@@ -543,12 +557,12 @@ def test_the_losing_rounds_pairs_still_count() -> None:
     first, second = replace_first(out, 3), _last(out, 3)
     refs_1, refs_2 = np.array([10, 11, 12]), np.array([20, 21, 22])
     config = VerifyConfig(min_explained_confidence=None)
-    assert verify_pose(T_b, T_wi[3:], second, CAMERA, config, rivals=[T_a]).ok
+    assert verify_pose(T_b, Pairs(T_wi[3:], second, CAMERA, config), rivals=[T_a]).ok
     refs, pooled = pooled_pairs(refs_2, second, refs_1, first)
     assert refs.tolist() == [20, 21, 22, 10, 11, 12] and pooled.k == 6
     assert [len(m) for m in pooled.matches] == [len(m) for m in second.matches + first.matches]
     T_pooled = np.concatenate([T_wi[3:], T_wi[:3]])
-    verdict = verify_pose(T_b, T_pooled, pooled, CAMERA, config, rivals=[T_a])
+    verdict = verify_pose(T_b, Pairs(T_pooled, pooled, CAMERA, config), rivals=[T_a])
     assert verdict.reason == "ambiguous", verdict.detail
     # A reference both rounds used counts once.
     refs, pooled = pooled_pairs(refs_2, second, np.array([20, 10]), replace_first(first, 2))
@@ -566,16 +580,16 @@ def _last(out: BackboneOutput, k: int) -> BackboneOutput:
 
 def test_a_rival_does_not_change_the_share_the_pose_explains() -> None:
     # A pose 2 deg of yaw off explains part of each pair's matches: 32 % of the pairs' confidence,
-    # under 45 %. A distinct rival the images do not support leaves that share as it is (600436f
-    # passed the rival's reference mask as the pairs' own support, and the share became 100 %).
+    # under 45 %. A distinct rival the images do not support leaves that share as it is (the pairs'
+    # own support is theirs, never a rival's reference mask).
     T_a, _, T_wi, out = _aliased_frame("A")
     out = replace(out, T_qi=invert_pose(T_a) @ T_wi)
     config = VerifyConfig()
-    own = pair_support(T_wi, out, CAMERA, config)
+    pairs = Pairs(T_wi, out, CAMERA, config)
     turned = camera_pose(T_a[:3, 3], np.deg2rad(47.0), np.deg2rad(20.0))
     far = camera_pose([5.0, 5.0, 1.2], 0.0, np.deg2rad(20.0))
-    alone = verify_pose(turned, T_wi, out, CAMERA, config, own=own)
-    with_rival = verify_pose(turned, T_wi, out, CAMERA, config, rivals=[far], own=own)
+    alone = verify_pose(turned, pairs)
+    with_rival = verify_pose(turned, pairs, rivals=[far])
     assert alone.check == with_rival.check == "share", with_rival.detail
     assert with_rival.detail == alone.detail == "the pose explains 32% of the pairs' confidence"
 
@@ -592,14 +606,14 @@ def test_a_pose_two_references_barely_explain_is_rejected() -> None:
         scale_valid=out.scale_valid[keep], matches=spread,
     )  # fmt: skip
     T_wi = T_wi[keep]
-    free = verify_pose(T_a, T_wi, few, CAMERA, VerifyConfig(min_total_support=None))
+    free = verify_pose(T_a, Pairs(T_wi, few, CAMERA, VerifyConfig(min_total_support=None)))
     assert free.ok and free.n_supporting == 2 and 110 <= free.strength <= 120, free.detail
-    weak = verify_pose(T_a, T_wi, few, CAMERA, VerifyConfig(min_total_support=140))
+    weak = verify_pose(T_a, Pairs(T_wi, few, CAMERA, VerifyConfig(min_total_support=140)))
     assert not weak.ok and weak.reason == "unverified" and weak.check == "support", weak.detail
     assert weak.detail == f"2 references explain only {free.strength} matches"
     # With all their matches the same two references confirm the pose.
     full = replace(few, n_matches=out.n_matches[keep], matches=[out.matches[i] for i in keep])
-    assert verify_pose(T_a, T_wi, full, CAMERA, VerifyConfig(min_total_support=140)).ok
+    assert verify_pose(T_a, Pairs(T_wi, full, CAMERA, VerifyConfig(min_total_support=140))).ok
     with pytest.raises(ValueError, match="min_total_support"):
         VerifyConfig(min_total_support=0)
 
@@ -617,7 +631,8 @@ def test_refine_pose_moves_a_nearby_pose_onto_the_one_the_matches_fit() -> None:
     # 8 cm and 1.2 deg of yaw off (inside the 1.5 deg bound): each reference explains fewer matches.
     start = camera_pose(T_a[:3, 3] + [0.06, -0.05, 0.02], np.deg2rad(46.2), np.deg2rad(20.0))
     before = epipolar_support(start, T_wi, out.matches, CAMERA, config.max_epipolar_error_px)
-    refined = refine_pose(start, T_wi, out.matches, CAMERA, config, max_shift=0.25)
+    pairs = Pairs(T_wi, out, CAMERA, config)
+    refined = refine_pose(start, pairs, max_shift=0.25)
     after = epipolar_support(refined, T_wi, out.matches, CAMERA, config.max_epipolar_error_px)
     dt, dr = _errors(refined, T_a)
     assert dt < 0.005 and dr < 0.05, (dt, dr)
@@ -625,17 +640,17 @@ def test_refine_pose_moves_a_nearby_pose_onto_the_one_the_matches_fit() -> None:
     # The refinement stays within its bounds: 0.3 m away it moves at most max_shift per axis.
     far = start.copy()
     far[0, 3] += 0.3
-    bounded = refine_pose(far, T_wi, out.matches, CAMERA, config, max_shift=0.1)
+    bounded = refine_pose(far, pairs, max_shift=0.1)
     assert np.abs(bounded[:2, 3] - far[:2, 3]).max() <= 0.1 + 1e-9
-    assert refine_pose(start, T_wi, [m[:1] for m in out.matches], CAMERA, config, max_shift=0.1) is start
+    one_each = Pairs(T_wi, replace(out, matches=[m[:1] for m in out.matches]), CAMERA, config)
+    assert refine_pose(start, one_each, max_shift=0.1) is start
 
 
 def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> None:
-    """Short baselines: the pairs' rotations are right but their translation directions 60 deg off
-    (home's frame 32: rotation 0.1 deg, direction 70 deg), so no two rays meet at the query. Inside a
-    prior 5 cm / 2 deg from the truth, the pairs' rotations at the position the matches fit best
-    are the query's pose, confirmed by all three references; a prior in the other room gives poses
-    no reference confirms."""
+    """Short baselines: the pairs' rotations are right but their translation directions 60 deg off, so
+    no two rays meet at the query. Inside a prior 5 cm / 2 deg from the truth, the pairs' rotations
+    at the position the matches fit best are the query's pose, confirmed by all three references; a
+    prior in the other room gives poses no reference confirms."""
     T_a, T_b, T_wi, out = _aliased_frame("A")
     config = VerifyConfig()
     T_qi = np.array([invert_pose(T_a) @ T for T in T_wi])
@@ -643,29 +658,28 @@ def test_prior_poses_place_the_query_when_the_pairs_translations_are_wrong() -> 
     T_qi[:, :3, 3] = T_qi[:, :3, 3] @ turn.T
     out = replace(out, T_qi=T_qi)
     prior = PoseGate(base_pose(T_a) + [0.04, -0.03, np.radians(2.0)], 0.25, np.radians(9.0))
-    hypotheses = prior_poses(T_wi, out, CAMERA, prior, T_a[2, 3], config)
+    hypotheses = prior_poses(Pairs(T_wi, out, CAMERA, config), prior, T_a[2, 3], RecoveryConfig())
     assert len(hypotheses) == 1  # the three pairs' rotations are one
-    placed = refine_pose(hypotheses[0], T_wi, out.matches, CAMERA, config, max_shift=prior.max_distance)
+    placed = refine_pose(hypotheses[0], Pairs(T_wi, out, CAMERA, config), max_shift=prior.max_distance)
     dt, dr = _errors(placed, T_a)
     assert dt < 0.01 and dr < 0.1, (dt, dr)
-    verdict = verify_pose(placed, T_wi, out, CAMERA, config, camera_z=T_a[2, 3], prior=prior)
+    verdict = verify_pose(placed, Pairs(T_wi, out, CAMERA, config), camera_z=T_a[2, 3], prior=prior)
     assert verdict.ok and verdict.n_supporting == 3, verdict.detail
     # Expected in room B (whose references were not retrieved): the poses there explain nothing.
     in_b = PoseGate(base_pose(T_b) + [0.04, -0.03, np.radians(2.0)], 0.25, np.radians(9.0))
-    in_room_b = prior_poses(T_wi, out, CAMERA, in_b, T_b[2, 3], config)
+    in_room_b = prior_poses(Pairs(T_wi, out, CAMERA, config), in_b, T_b[2, 3], RecoveryConfig())
     assert len(in_room_b) == 1
-    for T in [*in_room_b, refine_pose(in_room_b[0], T_wi, out.matches, CAMERA, config, max_shift=0.25)]:
-        assert not verify_pose(T, T_wi, out, CAMERA, config, camera_z=T_b[2, 3], prior=in_b).ok
+    for T in [*in_room_b, refine_pose(in_room_b[0], Pairs(T_wi, out, CAMERA, config), max_shift=0.25)]:
+        assert not verify_pose(T, Pairs(T_wi, out, CAMERA, config), camera_z=T_b[2, 3], prior=in_b).ok
     # A pair turned outside the prior's yaw bound, or rolled, gives no hypothesis.
     turned = PoseGate(base_pose(T_a) + [0.0, 0.0, np.radians(15.0)], 0.25, np.radians(9.0))
-    assert prior_poses(T_wi, out, CAMERA, turned, T_a[2, 3], config) == []
+    assert prior_poses(Pairs(T_wi, out, CAMERA, config), turned, T_a[2, 3], RecoveryConfig()) == []
 
 
 def test_slide_on_ray_moves_a_pose_placed_at_the_wrong_scale_to_where_the_references_see_it() -> None:
-    """The first pair's ray is right but its scale 25 % long (home's frames 104, 105: 0.19, 0.31 m
-    off along a ray 0.2 deg right): the other references' matches put the query back on the truth,
-    and the factor says how far the scale was off. A right pose, a position several rays carry, a
-    truth out of reach or the slide switched off move nothing."""
+    """The first pair's ray is right but its scale 25 % long: the other references' matches put the
+    query back on the truth, and the factor says how far the scale was off. A right pose, a position
+    several rays carry, a truth out of reach or the slide switched off move nothing."""
     T_a, _, T_wi, out = _aliased_frame("A")
     config = VerifyConfig()
     T_qi = np.array([invert_pose(T_a) @ T for T in T_wi])
@@ -674,26 +688,26 @@ def test_slide_on_ray_moves_a_pose_placed_at_the_wrong_scale_to_where_the_refere
     far = T_a.copy()
     far[:3, 3] = centre + 1.25 * (T_a[:3, 3] - centre)
     weights = np.array([1.0, 0.1, 0.0])
-    moved, factor = slide_on_ray(far, T_wi, out, weights, CAMERA, config)
+    pairs, recovery = Pairs(T_wi, out, CAMERA, config), RecoveryConfig()
+    moved, factor = slide_on_ray(far, pairs, weights, recovery)
     dt, dr = _errors(moved, T_a)
     assert dt < 0.005 and dr < 1e-3, (dt, dr)
     assert factor == pytest.approx(1 / 1.25, rel=0.01)
-    assert slide_on_ray(T_a, T_wi, out, weights, CAMERA, config) is None
-    assert slide_on_ray(far, T_wi, out, np.array([1.0, 1.0, 0.5]), CAMERA, config) is None
-    assert slide_on_ray(far, T_wi, out, weights, CAMERA, replace(config, ray_slide_share=None)) is None
+    assert slide_on_ray(T_a, pairs, weights, recovery) is None
+    assert slide_on_ray(far, pairs, np.array([1.0, 1.0, 0.5]), recovery) is None
+    assert slide_on_ray(far, pairs, weights, replace(recovery, ray_slide_share=None)) is None
     # The truth 0.145 m away along the ray, beyond a 0.1 m reach: never moved more than the reach.
-    bounded = slide_on_ray(far, T_wi, out, weights, CAMERA, replace(config, ray_slide_max_shift=0.1))
+    bounded = slide_on_ray(far, pairs, weights, replace(recovery, ray_slide_max_shift=0.1))
     assert bounded is None or np.linalg.norm(bounded[0][:3, 3] - far[:3, 3]) <= 0.1 + 1e-9
     with pytest.raises(ValueError, match="ray_slide_share"):
-        VerifyConfig(ray_slide_share=0.0)
+        RecoveryConfig(ray_slide_share=0.0)
 
 
 def test_slide_on_ray_needs_the_other_references_to_support_the_new_place() -> None:
     """A right pose that one pair carries stays where it is when the other references explain fewer
-    than ``min_support_matches`` matches anywhere on the ray (home:2's frame 24 on the temporal run:
-    a single pair's pose 0.011 m off, the other reference's handful of stray matches peaked 0.17 m
-    along the ray and moved it there). With the matches of a real reference the pose placed at a
-    wrong scale still moves."""
+    than ``min_support_matches`` matches anywhere on the ray (a handful of stray matches would peak
+    somewhere along the ray and move a right pose there). With the matches of a real reference the
+    pose placed at a wrong scale still moves."""
     T_a, _, T_wi, out = _aliased_frame("A")
     config = VerifyConfig()
     out = replace(out, T_qi=np.array([invert_pose(T_a) @ T for T in T_wi]))
@@ -703,9 +717,10 @@ def test_slide_on_ray_needs_the_other_references_to_support_the_new_place() -> N
     weights = np.array([1.0, 0.1, 0.0])
     few = replace(out, matches=[out.matches[0], out.matches[1][:12], out.matches[2][:12]])
     assert epipolar_support(T_a, T_wi[1:], few.matches[1:], CAMERA, config.max_epipolar_error_px).sum() >= 20
-    assert slide_on_ray(far, T_wi, few, weights, CAMERA, config) is None
-    assert slide_on_ray(T_a, T_wi, few, weights, CAMERA, config) is None
-    moved = slide_on_ray(far, T_wi, out, weights, CAMERA, config)
+    recovery = RecoveryConfig()
+    assert slide_on_ray(far, Pairs(T_wi, few, CAMERA, config), weights, recovery) is None
+    assert slide_on_ray(T_a, Pairs(T_wi, few, CAMERA, config), weights, recovery) is None
+    moved = slide_on_ray(far, Pairs(T_wi, out, CAMERA, config), weights, recovery)
     assert moved is not None and _errors(moved[0], T_a)[0] < 0.005
 
 
@@ -713,12 +728,12 @@ def test_the_support_a_pose_placed_inside_a_prior_needs_grows_with_the_prior() -
     """``prior_support_per_m`` per metre of the prior's radius, never above the floor without a
     prior (``min_total_support``): 67 matches inside the tightest prior the EKF gives (0.19 m, a
     fix's gate), 140 (the floor) at its widest (0.4 m)."""
-    config = VerifyConfig()
-    assert config.min_total_support == 140 and config.prior_support_per_m == 350.0
-    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config) == 67
-    assert prior_support_floor(PoseGate(np.zeros(3), 0.4, 0.2), config) == 140
-    assert prior_support_floor(PoseGate(np.zeros(3), 1.0, 0.2), config) == 140
-    off = replace(config, prior_support_per_m=None)
-    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), off) == 140
+    config, recovery = VerifyConfig(), RecoveryConfig()
+    assert config.min_total_support == 140 and recovery.prior_support_per_m == 350.0
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config, recovery) == 67
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.4, 0.2), config, recovery) == 140
+    assert prior_support_floor(PoseGate(np.zeros(3), 1.0, 0.2), config, recovery) == 140
+    off = replace(recovery, prior_support_per_m=None)
+    assert prior_support_floor(PoseGate(np.zeros(3), 0.19, 0.2), config, off) == 140
     with pytest.raises(ValueError, match="prior_support_per_m"):
-        VerifyConfig(prior_support_per_m=0.0)
+        RecoveryConfig(prior_support_per_m=0.0)

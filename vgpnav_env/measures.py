@@ -5,7 +5,11 @@ with ``update_metric(state, measures)``; its current value is ``metric``. A meas
 others names their uuids in ``depends_on``; :class:`Measurements` resets and updates a scope's
 measures in dependency order (as habitat-lab's ``habitat/tasks/nav/nav.py``). A new metric is one
 class decorated with :func:`register_measure`; the env's ``info``, the navigation protocol's
-episode records, its summaries and its report table pick it up from :data:`MEASURES`.
+episode records, its summaries and its report table pick it up from :data:`MEASURES`. Families of
+measures that differ only in what they read are rows of a table: the map measures
+(``map_precision``, ``map_recall``, ``map_iou``, ``path_phantoms``: :data:`_MAP_MEASURES`) and the
+per-frame fractions of the estimate (``no_estimate``, ``tracked``, ``relocalized``:
+:func:`_register_frame_fraction`).
 
 Scopes (what a measure reads):
 
@@ -200,6 +204,34 @@ class Accumulated(Measure):
         raise NotImplementedError
 
 
+class StateValue(Measure):
+    """A measure whose value is a function ``value`` of the state alone, at reset and every step."""
+
+    value: ClassVar[Callable[[Any], Any]]
+
+    def update_metric(self, state: Any, measures: Measurements) -> None:
+        self.metric = type(self).value(state)
+
+
+def _register_value(name: str, doc: str, value: Callable[[Any], Any], **attributes: Any) -> None:
+    """Register a :class:`StateValue` measure class ``name`` (docstring ``doc``) with the class
+    attributes ``attributes`` (``uuid``, ``scope``, ``record``, ...)."""
+    body = {"__doc__": doc, "__module__": __name__, "value": staticmethod(value), **attributes}
+    register_measure(type(name, (StateValue,), body))
+
+
+def _register_frame_fraction(
+    name: str, uuid: str, column: str, doc: str, flag: Callable[[EstimateState], bool]
+) -> None:
+    """Register a per-frame flag of the estimate (:class:`EstimateState`) whose episodes report the
+    fraction of the frames the agent acted on where it holds: record ``<uuid>_fraction``, summary
+    ``mean_<uuid>_fraction``."""
+    _register_value(
+        name, doc, flag, uuid=uuid, scope="estimate", record=f"{uuid}_fraction", per_frame=True,
+        summary=f"mean_{uuid}_fraction", column=column,
+    )  # fmt: skip
+
+
 def _efficiency(shortest: float, travelled: float) -> float:
     """Path efficiency of SPL: shortest / max(shortest, travelled)."""
     return shortest / max(shortest, travelled, 1e-9)
@@ -353,20 +385,13 @@ class LocalizationError(Measure):
         return _mean_over_estimates(values)
 
 
-@register_measure
-class NoEstimate(Measure):
-    """Whether the pose state had no estimate at this frame (before the first fix of an episode);
-    episodes report the fraction of the frames the agent acted on."""
-
-    uuid = "no_estimate"
-    scope = "estimate"
-    record = "no_estimate_fraction"
-    per_frame = True
-    summary = "mean_no_estimate_fraction"
-    column = "no estimate"
-
-    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
-        self.metric = not state.has_estimate
+_register_frame_fraction(
+    "NoEstimate",
+    "no_estimate",
+    "no estimate",
+    """Whether the pose state had no estimate at this frame (before the first fix of an episode).""",
+    lambda state: not state.has_estimate,
+)
 
 
 @register_measure
@@ -390,36 +415,21 @@ class Localized(Measure):
         return 1.0 - float(np.mean(values)) if len(values) else None
 
 
-@register_measure
-class Tracked(Measure):
-    """Whether this frame's pose was taken in from tracking (references around the predicted pose);
-    episodes report the tracked fraction of the frames the agent acted on."""
-
-    uuid = "tracked"
-    scope = "estimate"
-    record = "tracked_fraction"
-    per_frame = True
-    summary = "mean_tracked_fraction"
-    column = "tracked"
-
-    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
-        self.metric = bool(state.localized and state.source == "tracking")
-
-
-@register_measure
-class Relocalized(Measure):
+_register_frame_fraction(
+    "Tracked",
+    "tracked",
+    "tracked",
+    """Whether this frame's pose was taken in from tracking (references around the predicted pose).""",
+    lambda state: bool(state.localized and state.source == "tracking"),
+)
+_register_frame_fraction(
+    "Relocalized",
+    "relocalized",
+    "relocalized",
     """Whether this frame's pose was taken in from global retrieval (relocalization: the first fix,
-    after tracking failed or a kidnapping); episodes report the fraction of frames."""
-
-    uuid = "relocalized"
-    scope = "estimate"
-    record = "relocalized_fraction"
-    per_frame = True
-    summary = "mean_relocalized_fraction"
-    column = "relocalized"
-
-    def update_metric(self, state: EstimateState, measures: Measurements) -> None:
-        self.metric = bool(state.localized and state.source == "global")
+    after tracking failed or a kidnapping).""",
+    lambda state: bool(state.localized and state.source == "global"),
+)
 
 
 #: A pose estimate farther off than this (metres) is a gross error (the issue's 0.5 m target).
@@ -452,59 +462,24 @@ class GrossPoseError(Measure):
 # -- map measures ---------------------------------------------------------------------------
 
 
-@register_measure
-class MapPrecision(Measure):
-    """Occupied precision of the fused map over the observed cells (:mod:`vgpnav_env.map_measures`;
-    None while no occupied cell was observed); episodes report the value at their end."""
-
-    uuid = "map_precision"
-    scope = "map"
-    record = "map_precision"
-    summary = "mean_map_precision"
-    column = "map prec."
-
-    def update_metric(self, state: MapState, measures: Measurements) -> None:
-        self.metric = state.score.precision
-
-
-@register_measure
-class MapRecall(Measure):
-    """Occupied recall of the fused map over the observed cells (None while no true obstacle was
-    observed); episodes report the value at their end."""
-
-    uuid = "map_recall"
-    scope = "map"
-    record = "map_recall"
-    summary = "mean_map_recall"
-    column = "map recall"
-
-    def update_metric(self, state: MapState, measures: Measurements) -> None:
-        self.metric = state.score.recall
-
-
-@register_measure
-class MapIoU(Measure):
-    """Occupied IoU of the fused map over the observed cells (from precision and recall)."""
-
-    uuid = "map_iou"
-    scope = "map"
-    record = "map_iou"
-    summary = "mean_map_iou"
-
-    def update_metric(self, state: MapState, measures: Measurements) -> None:
-        self.metric = state.score.iou
-
-
-@register_measure
-class PathPhantoms(Measure):
-    """Phantom cells of the fused map (occupied, no true obstacle near) within the robot radius of
-    the true shortest path; episodes report the count at their end."""
-
-    uuid = "path_phantoms"
-    scope = "map"
-    record = "path_phantom_cells"
-    summary = "mean_path_phantom_cells"
-    column = "path phantoms"
-
-    def update_metric(self, state: MapState, measures: Measurements) -> None:
-        self.metric = state.path_phantoms
+#: The map measures, as (class name, uuid, record, report column, value of the :class:`MapState`,
+#: docstring): episodes report the value at their end, summaries its mean as ``mean_<record>``.
+_MAP_MEASURES: tuple[tuple[str, str, str, str | None, Callable[[MapState], Any], str], ...] = (
+    ("MapPrecision", "map_precision", "map_precision", "map prec.", lambda state: state.score.precision,
+     "Occupied precision of the fused map over the observed cells (:mod:`vgpnav_env.map_measures`; "
+     "None while no occupied cell was observed)."),
+    ("MapRecall", "map_recall", "map_recall", "map recall", lambda state: state.score.recall,
+     "Occupied recall of the fused map over the observed cells (None while no true obstacle was "
+     "observed)."),
+    ("MapIoU", "map_iou", "map_iou", None, lambda state: state.score.iou,
+     "Occupied IoU of the fused map over the observed cells (from precision and recall)."),
+    ("PathPhantoms", "path_phantoms", "path_phantom_cells", "path phantoms",
+     lambda state: state.path_phantoms,
+     "Phantom cells of the fused map (occupied, no true obstacle near) within the robot radius of "
+     "the true shortest path."),
+)  # fmt: skip
+for _name, _uuid, _record, _column, _value, _doc in _MAP_MEASURES:
+    _register_value(
+        _name, _doc, _value, uuid=_uuid, scope="map", record=_record, summary=f"mean_{_record}",
+        column=_column,
+    )  # fmt: skip

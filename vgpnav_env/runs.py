@@ -247,19 +247,26 @@ def _read_json(path: Path, what: str) -> dict[str, Any]:
     return obj
 
 
+def _read_versioned(path: Path, name: str, what: str, kind: str, fmt: str, version: int) -> dict[str, Any]:
+    """The JSON object ``name`` (``what``) of the ``kind`` directory ``path``; RunFormatError unless
+    the directory exists and the object's ``format`` and ``version`` are ``fmt`` and ``version``."""
+    if not path.is_dir():
+        raise RunFormatError(f"{path}: no such {kind} directory")
+    obj = _read_json(path / name, what)
+    if obj.get("format") != fmt:
+        raise RunFormatError(f"{path}: {name} format is {obj.get('format')!r}, expected {fmt!r}")
+    if obj.get("version") != version:
+        raise RunFormatError(
+            f"{path}: {kind} version {obj.get('version')!r} is not supported "
+            f"(this vgpnav reads version {version})"
+        )
+    return obj
+
+
 def read_run_meta(path: Path | str) -> dict[str, Any]:
     """The validated ``meta.json`` of a run directory (format, version, frame count)."""
     path = Path(path)
-    if not path.is_dir():
-        raise RunFormatError(f"{path}: no such run directory")
-    meta = _read_json(path / "meta.json", "run metadata")
-    if meta.get("format") != RUN_FORMAT:
-        raise RunFormatError(f"{path}: meta.json format is {meta.get('format')!r}, expected {RUN_FORMAT!r}")
-    if meta.get("version") != RUN_VERSION:
-        raise RunFormatError(
-            f"{path}: run format version {meta.get('version')!r} is not supported "
-            f"(this vgpnav reads version {RUN_VERSION})"
-        )
+    meta = _read_versioned(path, "meta.json", "run metadata", "run", RUN_FORMAT, RUN_VERSION)
     n = meta.get("n_frames")
     if not isinstance(n, int) or n < 0:
         raise RunFormatError(f"{path}: meta.json n_frames must be a non-negative integer, got {n!r}")
@@ -378,20 +385,7 @@ def build_dir_name(slug: str, size: tuple[int, int], seed: int, texture: str) ->
 
 def read_build_summary(path: Path | str) -> dict[str, Any]:
     """The validated ``summary.json`` of a build directory."""
-    path = Path(path)
-    if not path.is_dir():
-        raise RunFormatError(f"{path}: no such build directory")
-    summary = _read_json(path / "summary.json", "build summary")
-    if summary.get("format") != BUILD_FORMAT:
-        raise RunFormatError(
-            f"{path}: summary.json format is {summary.get('format')!r}, expected {BUILD_FORMAT!r}"
-        )
-    if summary.get("version") != BUILD_VERSION:
-        raise RunFormatError(
-            f"{path}: build version {summary.get('version')!r} is not supported "
-            f"(this vgpnav reads version {BUILD_VERSION})"
-        )
-    return summary
+    return _read_versioned(Path(path), "summary.json", "build summary", "build", BUILD_FORMAT, BUILD_VERSION)
 
 
 def load_build(path: Path | str) -> Build:

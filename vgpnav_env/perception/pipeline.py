@@ -34,11 +34,12 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, rotation_angle, transform_points
+from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, invert_pose, transform_points
 from vgpnav_env.perception.backbones import make_backbone
 from vgpnav_env.perception.backbones.base import Backbone, BackboneOutput, Privileged
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone, rootsift
@@ -58,6 +59,7 @@ from vgpnav_env.perception.recovery import (
     Frame,
     Outcome,
     Phase,
+    RecoveryConfig,
     pooled_pairs,
     second_round,
 )
@@ -80,6 +82,7 @@ from vgpnav_env.perception.scale_recovery import (
 from vgpnav_env.perception.verify import (
     LOST_REASONS,
     LostReason,
+    Pairs,
     PoseGate,
     Verdict,
     VerifyCheck,
@@ -87,6 +90,7 @@ from vgpnav_env.perception.verify import (
     assess,
     check_height,
     check_scale,
+    distinct,
     implausible_mount,
     plausible_scale,
     prior_hypothesis,
@@ -129,7 +133,8 @@ class PerceptionConfig:
     ``averaging.method`` (weighted | single) and ``scale.enabled``.
 
     ``camera_height``: the calibrated camera-to-base height (metres), the metric anchor.
-    ``verify``: the checks and second chances of :mod:`vgpnav_env.perception.verify`.
+    ``verify``: the checks of :mod:`vgpnav_env.perception.verify`; ``recovery``: the second
+    chances of :mod:`vgpnav_env.perception.recovery`.
     """
 
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
@@ -137,6 +142,7 @@ class PerceptionConfig:
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
     verify: VerifyConfig = field(default_factory=VerifyConfig)
+    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     depth: PosedDepthConfig = field(default_factory=PosedDepthConfig)
     camera_height: float = CAMERA_HEIGHT
@@ -527,28 +533,21 @@ class Perceiver:
             return Attempt(_lost(loc, clock, **kw), None, loc, pose, rival)
         if pose.anchor is not None and not self.anchor.initialized:
             self.anchor, self._anchored_by = pose.anchor, [pose.T_wc]  # the first verified pose anchors
-        elif self._anchored_by and all(self._distinct(pose.T_wc, T) for T in self._anchored_by):
+        elif self._anchored_by and all(distinct(pose.T_wc, T, self.config.verify) for T in self._anchored_by):
             self._anchored_by, self._floor_votes = [], []  # a pose of another place confirms the anchor
-        result = PerceptionResult(
+        result = _result(
+            loc,
             status="localized",
             reason="",
             T_wc=pose.T_wc,
             points_w=points_w.astype(np.float32),
-            classes=None,
-            references=loc.references,
             scale=pose.scale.scale,
             scale_source=pose.scale.source,
             z_ground=pose.z_ground,
             timings={},
-            motion=loc.motion,
             ground=pose.ground,
-            backbone=loc.backbone,
-            n_confident_pairs=loc.n_confident_pairs,
-            detail=loc.detail,
-            retrieved=loc.retrieved,
             verdict=verdict,
             confidence=verdict.confidence,
-            source=loc.source,
         )
         return Attempt(result, points_w, loc, pose, rival)
 
@@ -562,7 +561,7 @@ class Perceiver:
         refs, out = loc.references, loc.backbone
         if loc.other is not None:
             refs, out = pooled_pairs(refs, out, *loc.other)
-        T_wi = self.database.poses[refs]
+        pairs = self.pairs(refs, out)
         cfg = self.config
         camera_z = pose.z_ground + cfg.camera_height  # nan before the ground is anchored
         map_z = self._map_camera_z()
@@ -572,9 +571,8 @@ class Perceiver:
 
         def verdict_at(z: float):
             return assess(
-                pose.T_wc, T_wi, out, self.camera, cfg.verify, scale=pose.scale.scale,
-                averaging=cfg.averaging, camera_z=z, prior=prior,
-            )  # fmt: skip
+                pose.T_wc, pairs, scale=pose.scale.scale, averaging=cfg.averaging, camera_z=z, prior=prior
+            )
 
         a = verdict_at(camera_z)
         unconfirmed = pose.anchor is None and bool(self._anchored_by)
@@ -593,8 +591,8 @@ class Perceiver:
         if prior is None or (a.verdict.ok and prior.admits(pose.T_wc)):
             return pose.T_wc, a.verdict
         picked = prior_hypothesis(
-            pose.T_wc, a.rivals, T_wi, out, self.camera, cfg.verify, prior,
-            scale=pose.scale.scale, averaging=cfg.averaging, camera_z=camera_z, own=a.own,
+            pose.T_wc, a.rivals, pairs, prior, scale=pose.scale.scale, averaging=cfg.averaging,
+            camera_z=camera_z,
         )  # fmt: skip
         return (pose.T_wc, a.verdict) if picked is None else picked
 
@@ -602,23 +600,21 @@ class Perceiver:
         """Count ``T_wc``, a pose the images verify but for its camera height against a floor (the
         map's before the ground is anchored, or an anchor no pose of another place has confirmed),
         as a vote against that floor: refuted once ``needed`` such poses -- ``T_wc`` and others of
-        another place (:meth:`_distinct`) -- agree on the camera height within
+        another place (:func:`~vgpnav_env.perception.verify.distinct`) -- agree on the camera height within
         ``pose_height_tolerance``. A wrong floor (a reconstruction's, or one anchored by a wrong
         first pose) would otherwise reject every right pose after it, and the episode would never
         localize."""
         v = self.config.verify
         tol = v.pose_height_tolerance if v.pose_height_tolerance is not None else np.inf
-        agree = [T for T in self._floor_votes if self._distinct(T, T_wc) and abs(T[2, 3] - T_wc[2, 3]) <= tol]
+        agree = [T for T in self._floor_votes if distinct(T, T_wc, v) and abs(T[2, 3] - T_wc[2, 3]) <= tol]
         refuted = len(agree) + 1 >= needed
         self._floor_votes = [] if refuted else [*self._floor_votes, np.asarray(T_wc, float).copy()]
         return refuted
 
-    def _distinct(self, T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> bool:
-        """Whether two camera poses are distinct places: farther apart than ``rival_distance`` or
-        turned more than ``rival_angle_deg``."""
-        v = self.config.verify
-        far = np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > v.rival_distance
-        return bool(far or rotation_angle(T_a[:3, :3], T_b[:3, :3]) > np.deg2rad(v.rival_angle_deg))
+    def pairs(self, references: NDArray[np.int64], out: BackboneOutput) -> Pairs:
+        """The query's pairs with the database images ``references`` (``out``: the backbone output
+        with exactly these), for verification."""
+        return Pairs(self.database.poses[references], out, self.camera, self.config.verify)
 
     def _map_camera_z(self) -> float:
         """World height (metres) of a camera at the calibrated height above the floor the
@@ -832,26 +828,36 @@ class Perceiver:
         return recover_metric_points(points_q, T_wc, scale)
 
 
-def _lost(loc: Localization, clock: Clock, **kw) -> PerceptionResult:
-    """The lost result of ``loc`` (its reason and detail); ``kw``: the pose and ground found before
-    the frame was rejected, if any."""
+def _result(loc: Localization, **fields: Any) -> PerceptionResult:
+    """The result of a frame that went through ``loc`` (its references, motion, backbone output,
+    confident pairs, detail, retrieval and source; no ``classes`` until fused) with the other
+    ``fields``."""
     return PerceptionResult(
-        status="lost",
-        reason=loc.reason,
-        T_wc=kw.pop("T_wc", None),
-        points_w=np.zeros((0, 3), np.float32),
         classes=None,
         references=loc.references,
-        scale=float("nan"),
-        scale_source="none",
-        z_ground=kw.pop("z_ground", float("nan")),
-        timings=clock.stop(),
         motion=loc.motion,
         backbone=loc.backbone,
         n_confident_pairs=loc.n_confident_pairs,
         detail=loc.detail,
         retrieved=loc.retrieved,
         source=loc.source,
+        **fields,
+    )
+
+
+def _lost(loc: Localization, clock: Clock, **kw) -> PerceptionResult:
+    """The lost result of ``loc`` (its reason and detail); ``kw``: the pose and ground found before
+    the frame was rejected, if any."""
+    return _result(
+        loc,
+        status="lost",
+        reason=loc.reason,
+        T_wc=kw.pop("T_wc", None),
+        points_w=np.zeros((0, 3), np.float32),
+        scale=float("nan"),
+        scale_source="none",
+        z_ground=kw.pop("z_ground", float("nan")),
+        timings=clock.stop(),
         **kw,
     )
 

@@ -7,7 +7,8 @@ finds nothing. Strategies of :attr:`Phase.POSE` act on stages 1-3's outcome (ref
 output, motion averaging) before scale recovery and verification; those of :attr:`Phase.RESULT`
 on the verified -- or lost -- frame. Every pose a strategy proposes is verified by the images
 (:func:`~vgpnav_env.perception.verify.assess`). The geometry they use is here too:
-:func:`second_round_references`, :func:`single_pair_fallback`, :func:`slide_on_ray`.
+:func:`second_round_references`, :func:`single_pair_fallback`, :func:`prior_poses`,
+:func:`slide_on_ray`; their settings are :class:`RecoveryConfig` (``PerceptionConfig.recovery``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, make_pose, rotation_angle
+from vgpnav_env.geometry import make_pose, rotation_angle
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
@@ -31,23 +32,79 @@ from vgpnav_env.perception.motion_averaging import (
 from vgpnav_env.perception.retrieval import pose_guided_references
 from vgpnav_env.perception.verify import (
     LostReason,
+    Pairs,
     PoseGate,
     VerifyConfig,
     assess,
     check_height,
     check_scale,
     epipolar_support,
+    implausible_mount,
     plausible_scale,
     prior_pairs,
-    prior_poses,
-    prior_support_floor,
     reference_support,
     refine_pose,
 )
+from vgpnav_env.perception.verify.verdict import roll_deg
 
 if TYPE_CHECKING:
     from vgpnav_env.perception.backbones.base import Privileged
     from vgpnav_env.perception.pipeline import Clock, Localization, MetricPose, Perceiver, PerceptionResult
+
+
+@dataclass(frozen=True)
+class RecoveryConfig:
+    """Settings of the recovery strategies (:data:`RECOVERY`); None switches one off. Distances in
+    metres, angles in degrees.
+
+    Attributes:
+        second_round_below_inliers: with fewer consistent references than this (a failed pose
+            counts 0) a second round verifies references chosen around the first round's pose
+            hypotheses; the round with more consistent references wins (None: one round).
+        second_round_hypotheses: at most this many distinct pose hypotheses seed the second round.
+        second_round_radius: its database cameras lie within this distance of a hypothesis ...
+        second_round_max_angle_deg: ... and within this angle of its heading.
+        single_fallback_confidence: when motion averaging fails, a pair at least this confident
+            gives the pose alone, placed with the ground scale (needs scale recovery).
+        prior_hypotheses: a frame lost inside a prior gets up to this many pose hypotheses there
+            (:func:`prior_poses`) ...
+        prior_grid_m: ... whose positions are searched on a grid of this step.
+        prior_support_per_m: a pose placed inside the prior needs this many supporting matches per
+            metre of the prior's radius, at most ``VerifyConfig.min_total_support``
+            (:func:`prior_support_floor`; None: ``min_total_support``).
+        ray_slide_share: a verified pose whose position one pair's ray carries (at least this
+            share of the translation weight) may slide along that ray (:func:`slide_on_ray`;
+            None: never) ...
+        ray_slide_gain: ... to where the other references explain this fraction more matches ...
+        ray_slide_max_shift: ... by at most this distance.
+
+    Where the defaults came from: ``benchmarks/history/tuning.md``.
+    """
+
+    second_round_below_inliers: int | None = 3
+    second_round_hypotheses: int = 2
+    second_round_radius: float = 1.5
+    second_round_max_angle_deg: float = 35.0
+    single_fallback_confidence: float | None = 0.15
+    prior_hypotheses: int = 3
+    prior_grid_m: float = 0.08
+    prior_support_per_m: float | None = 350.0
+    ray_slide_share: float | None = 0.55
+    ray_slide_gain: float = 0.1
+    ray_slide_max_shift: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.second_round_hypotheses < 1 or self.second_round_radius <= 0:
+            raise ValueError("need second_round_hypotheses >= 1 and second_round_radius > 0 m")
+        if self.prior_support_per_m is not None and not self.prior_support_per_m > 0:
+            raise ValueError(f"prior_support_per_m must be > 0 or None, got {self.prior_support_per_m}")
+        if self.ray_slide_share is not None and not 0 < self.ray_slide_share <= 1:
+            raise ValueError(f"ray_slide_share must be in (0, 1] or None, got {self.ray_slide_share}")
+        if self.ray_slide_gain < 0 or not self.ray_slide_max_shift > 0:
+            raise ValueError(
+                f"need ray_slide_gain >= 0 and ray_slide_max_shift > 0 m, got "
+                f"{self.ray_slide_gain}, {self.ray_slide_max_shift}"
+            )
 
 
 def pooled_pairs(
@@ -88,7 +145,7 @@ def second_round_references(
     motion: MotionResult,
     similarity: NDArray[np.float64],
     T_w: NDArray[np.float64],
-    config: VerifyConfig,
+    config: RecoveryConfig,
     *,
     k: int,
     consensus_deg: float,
@@ -152,15 +209,10 @@ def second_round_references(
 
 
 def slide_on_ray(
-    T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    weights: NDArray[np.float64],
-    camera: PinholeCamera,
-    config: VerifyConfig,
+    T_wq: NDArray[np.float64], pairs: Pairs, weights: NDArray[np.float64], config: RecoveryConfig
 ) -> tuple[NDArray[np.float64], float] | None:
-    """``T_wq`` moved along the ray of the pair its position rests on, to where the other
-    references' matches confirm it, and the factor its distance to that pair's reference grew
+    """``T_wq`` moved along the ray of the pair (of the query's ``pairs``) its position rests on, to
+    where the other references' matches confirm it, and the factor its distance to that pair's reference grew
     by (what the scale that placed it was off by); None when nothing moves (``ray_slide_share``
     None, no pair with at least that share of the translation ``weights`` (k,), or no place
     gains the support).
@@ -173,6 +225,7 @@ def slide_on_ray(
     best, the middle of equal ones), the rotation kept; the best counts when it gains at least
     ``ray_slide_gain`` of ``T_wq``'s support and reaches ``min_support_matches`` (fewer are stray
     matches, not a reference that sees the place)."""
+    T_wi, out, verify = pairs.T_wi, pairs.out, pairs.config
     share = config.ray_slide_share
     w = np.asarray(weights, float)
     if share is None or out.matches is None or len(w) != len(T_wi) or not w.sum() > 0:
@@ -184,9 +237,10 @@ def slide_on_ray(
     ray, centre = ray / np.linalg.norm(ray), T_wi[j][:3, 3]
     others = np.flatnonzero(np.arange(len(w)) != j)
     matches = [out.matches[i] for i in others]
+    error_px = verify.max_epipolar_error_px
 
     def support(T: NDArray[np.float64]) -> int:
-        return int(epipolar_support(T, T_wi[others], matches, camera, config.max_epipolar_error_px).sum())
+        return int(epipolar_support(T, T_wi[others], matches, pairs.camera, error_px).sum())
 
     def at(distance: float) -> NDArray[np.float64]:
         T = T_wq.copy()
@@ -204,27 +258,23 @@ def slide_on_ray(
         scores = np.array([support(at(x)) for x in d])
         best = int(scores.max())
         best_d = float(np.median(d[scores == best]))  # the middle of a plateau of equal support
-    if best < max(support(T_wq) * (1.0 + config.ray_slide_gain), config.min_support_matches):
+    if best < max(support(T_wq) * (1.0 + config.ray_slide_gain), verify.min_support_matches):
         return None
     before = float(np.linalg.norm(T_wq[:3, 3] - centre))
     return at(best_d), best_d / before
 
 
 def single_pair_fallback(
-    refs: NDArray[np.int64],
-    out: BackboneOutput,
-    T_w: NDArray[np.float64],
-    averaging: MotionAveragingConfig,
-    config: VerifyConfig,
+    pairs: Pairs, averaging: MotionAveragingConfig, config: RecoveryConfig
 ) -> MotionResult | None:
-    """The pose of the most confident pair alone (a ``single reference`` motion result at backbone
-    scale, to be placed with the ground scale), or None when no pair reaches
+    """The pose of the most confident of the query's ``pairs`` alone (a ``single reference`` motion
+    result at backbone scale, to be placed with the ground scale), or None when no pair reaches
     ``single_fallback_confidence`` (or the fallback is off)."""
-    thr = config.single_fallback_confidence
+    out, thr = pairs.out, config.single_fallback_confidence
     if thr is None or float(out.confidence.max(initial=0.0)) < thr:
         return None
     single = replace(averaging, method="single", single_reference="confidence")
-    return average_motion(T_w[refs], out.T_qi, out.confidence, single, scale_valid=out.scale_valid)
+    return average_motion(pairs.T_wi, out.T_qi, out.confidence, single, scale_valid=out.scale_valid)
 
 
 @dataclass(frozen=True)
@@ -293,7 +343,7 @@ def second_round(perceiver: Perceiver, frame: Frame, loc: Localization) -> Local
     out, motion, refs = loc.backbone, loc.motion, loc.references
     with frame.clock.stage("retrieval"):
         second = second_round_references(
-            refs, out, motion, loc.similarity, perceiver.database.poses, cfg.verify,
+            refs, out, motion, loc.similarity, perceiver.database.poses, cfg.recovery,
             k=cfg.retrieval.k, consensus_deg=cfg.averaging.consensus_deg,
             pair_scale=(lambda T: perceiver.calibrated_scale(out, T)) if cfg.scale.enabled else None,
         )  # fmt: skip
@@ -333,8 +383,8 @@ def single_pair(perceiver: Perceiver, frame: Frame, loc: Localization) -> Locali
         return None
     cfg = perceiver.config
     with frame.clock.stage("motion_averaging"):
-        motion = single_pair_fallback(loc.references, loc.backbone, perceiver.database.poses, cfg.averaging,
-                                      cfg.verify)  # fmt: skip
+        pairs = perceiver.pairs(loc.references, loc.backbone)
+        motion = single_pair_fallback(pairs, cfg.averaging, cfg.recovery)
     if motion is None:
         return None
     return replace(loc, motion=motion, reason="", detail=f"single-pair fallback after: {loc.detail}")
@@ -385,9 +435,8 @@ def slide(perceiver: Perceiver, frame: Frame, outcome: Outcome) -> Outcome | Non
     if attempt.rival or pose.anchor is not None:
         return None
     with frame.clock.stage("verification"):
-        T_wi = perceiver.database.poses[loc.references]
-        cfg = perceiver.config.verify
-        moved = slide_on_ray(pose.T_wc, T_wi, loc.backbone, loc.motion.weights, perceiver.camera, cfg)
+        pairs = perceiver.pairs(loc.references, loc.backbone)
+        moved = slide_on_ray(pose.T_wc, pairs, loc.motion.weights, perceiver.config.recovery)
         if moved is None:
             return None
         T, factor = moved
@@ -403,6 +452,66 @@ def slide(perceiver: Perceiver, frame: Frame, outcome: Outcome) -> Outcome | Non
         verdict=verdict, confidence=verdict.confidence,
     )  # fmt: skip
     return replace(outcome, attempt=replace(attempt, result=result, points_w=points, pose=slid))
+
+
+def prior_support_floor(prior: PoseGate, verify: VerifyConfig, config: RecoveryConfig) -> int:
+    """The matches a pose placed inside the ``prior`` (:func:`prior_poses`) must have explained,
+    together, by references of at least ``min_support_matches`` each: ``prior_support_per_m`` per
+    metre of the prior's radius, at most ``min_total_support`` (the floor without a prior; a pose is
+    searched over the prior's disc, and the tighter the disc the fewer places a stray support can
+    come from). ``min_total_support`` when ``prior_support_per_m`` is None, 0 when both are."""
+    full = verify.min_total_support or 0
+    if config.prior_support_per_m is None:
+        return full
+    return min(full, int(np.ceil(config.prior_support_per_m * prior.max_distance)))
+
+
+def prior_poses(
+    pairs: Pairs, prior: PoseGate, camera_z: float, config: RecoveryConfig
+) -> list[NDArray[np.float64]]:
+    """Pose hypotheses inside the ``prior`` for a frame motion averaging could not place, from the
+    query's ``pairs``: per
+    confident pair (most confident first, up to ``prior_hypotheses``) whose own rotation
+    ``R_wi R_iq`` a ground robot's camera could have (roll within ``prior_max_roll_deg``, the
+    mount's pitch) with its heading within the prior's yaw bound, that rotation at the camera
+    position within the prior (height ``camera_z``, metres, W) whose matches with all references
+    the pose explains best (:func:`reference_support`, summed): a grid of ``prior_grid_m`` over the
+    prior's disc, then a quarter of it around the best. The pairs' relative translations are the
+    weak part of a short baseline (their rotations are right to a degree when their translation
+    directions are 50-70 deg off); the matches themselves still fit the true pose. Each
+    hypothesis must still be confirmed by :func:`verify_pose`.
+    """
+    T_wi, out, verify = pairs.T_wi, pairs.out, pairs.config
+    x, y, yaw = np.asarray(prior.pose, float)
+    step = config.prior_grid_m
+    n = int(np.ceil(prior.max_distance / step))
+    offsets = np.stack(np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1)), -1).reshape(-1, 2) * step
+    offsets = offsets[np.linalg.norm(offsets, axis=1) <= prior.max_distance]
+    fine = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), -1).reshape(-1, 2) * (step / 4)
+
+    def best(R: NDArray[np.float64], centre: NDArray[np.float64], grid: NDArray[np.float64]):
+        poses = [make_pose(R, np.r_[centre + o, camera_z]) for o in grid]
+        poses = [T for T in poses if prior.admits(T)]
+        scores = [int(reference_support(T, pairs).sum()) for T in poses]
+        return poses[int(np.argmax(scores))] if poses else None
+
+    hypotheses: list[NDArray[np.float64]] = []
+    for i in np.argsort(-out.confidence, kind="stable"):
+        if out.confidence[i] <= 0 or len(hypotheses) >= config.prior_hypotheses:
+            break
+        R = T_wi[i, :3, :3] @ out.T_iq[i, :3, :3]
+        T = make_pose(R, np.array([x, y, camera_z]))
+        if abs(roll_deg(T)) > verify.prior_max_roll_deg or implausible_mount(T, camera_z, verify):
+            continue
+        if not prior.admits(T):
+            continue
+        if any(rotation_angle(R, h[:3, :3]) < np.deg2rad(1.0) for h in hypotheses):
+            continue
+        coarse = best(R, np.array([x, y]), offsets)
+        refined = best(R, coarse[:2, 3], fine) if coarse is not None else None
+        if refined is not None:
+            hypotheses.append(refined)
+    return hypotheses
 
 
 #: The recovery strategies in the order :meth:`~vgpnav_env.perception.pipeline.Perceiver.perceive`
@@ -433,40 +542,33 @@ def place_on_prior(
     if not (out.confidence > 0).any():
         return None
     cfg, v = perceiver.config, perceiver.config.verify
-    T_wi = perceiver.database.poses[refs]
+    pairs = perceiver.pairs(refs, out)
+    T_wi = pairs.T_wi
     camera_z = float(perceiver.anchor.z_ground) + cfg.camera_height
-    hypotheses = prior_poses(T_wi, out, perceiver.camera, prior, camera_z, v)
+    hypotheses = prior_poses(pairs, prior, camera_z, cfg.recovery)
     if not hypotheses:
         return None
-    own = None
     baseline = np.linalg.norm(out.T_iq[:, :3, 3], axis=1)
     best = None
-    if out.matches is not None:
-        refined = [
-            refine_pose(T, T_wi, out.matches, perceiver.camera, v, max_shift=prior.max_distance)
-            for T in hypotheses
-        ]
-        hypotheses += [T for T in refined if prior.admits(T)]
+    refined = [refine_pose(T, pairs, max_shift=prior.max_distance) for T in hypotheses]
+    hypotheses += [T for T in refined if prior.admits(T)]
     for T in hypotheses:
         distance = np.linalg.norm(T_wi[:, :3, 3] - T[:3, 3], axis=1)
-        support = reference_support(T, T_wi, out, perceiver.camera, v)
+        support = reference_support(T, pairs)
         usable = (support >= v.min_support_matches) & out.scale_valid & (baseline > 0) & (out.confidence > 0)
         if not usable.any():
             continue
         pair_scale = float(np.median(distance[usable] / baseline[usable]))
-        assessed = assess(
-            T, T_wi, out, perceiver.camera, v, scale=pair_scale, averaging=cfg.averaging, camera_z=camera_z,
-            own=own, prior=prior,
-        )  # fmt: skip
-        verdict, own = assessed.verdict, assessed.own
+        verdict = assess(
+            T, pairs, scale=pair_scale, averaging=cfg.averaging, camera_z=camera_z, prior=prior
+        ).verdict
         enough = verdict.n_supporting >= max(2, v.min_supporting_references)
         if not (verdict.ok and enough) or (best is not None and verdict.strength <= best[3].strength):
             continue
         # The prior says where, not whether: the images must give the pose its support, the more
-        # the wider the prior (prior_support_floor; a prior 1 m off placed a pose 0.76 m off with
-        # two references of 31 and 37 matches). The verdict inside the prior has already waived
+        # the wider the prior (prior_support_floor). The verdict inside the prior has already waived
         # rivals outside it, the share and a wall's plane (its aliases lie elsewhere).
-        if verdict.strength < prior_support_floor(prior, v):
+        if verdict.strength < prior_support_floor(prior, v, cfg.recovery):
             continue
         best = T, pair_scale, float(out.confidence[usable].sum()), verdict
     if best is None:

@@ -1,11 +1,12 @@
 """Is this pose true? Verification of a frame's pose by the images, around one :class:`Evidence`
 value per pose.
 
-- :mod:`.support`: how many of the query's matches with each reference a pose explains;
+- :mod:`.support`: the query's :class:`Pairs` and how many of its matches with each reference a
+  pose explains;
 - :mod:`.rivals`: the other places the pairs point to;
 - :mod:`.verdict`: the chain support -> rivals -> :class:`Verdict` (:func:`assess`), once;
 - :mod:`.model`: the calibrated model, evidence -> probability that the pose is right;
-- :mod:`.prior`: pose hypotheses a state estimate's prior proposes;
+- :mod:`.prior`: the rival a state estimate's prior picks, and the pairs that agree with it;
 - :mod:`.scale_checks`: the camera height and scale checks before verification;
 - :mod:`.reasons`: lost reasons and check names (str-valued enums).
 
@@ -16,11 +17,12 @@ a scale (metres per unit) is applied.
 
 from vgpnav_env.perception.verify.config import PoseGate, VerifyConfig
 from vgpnav_env.perception.verify.model import VerificationModel, default_model, fit_model
-from vgpnav_env.perception.verify.prior import prior_hypothesis, prior_pairs, prior_poses, prior_support_floor
+from vgpnav_env.perception.verify.prior import prior_hypothesis, prior_pairs
 from vgpnav_env.perception.verify.reasons import LOST_REASONS, VERIFY_CHECKS, LostReason, VerifyCheck
-from vgpnav_env.perception.verify.rivals import rival_pairs, rival_poses
+from vgpnav_env.perception.verify.rivals import distinct, rival_pairs, rival_poses
 from vgpnav_env.perception.verify.scale_checks import check_height, check_scale, plausible_scale
 from vgpnav_env.perception.verify.support import (
+    Pairs,
     epipolar_support,
     explained_confidence,
     off_plane_matches,
@@ -43,6 +45,7 @@ __all__ = [
     "Assessment",
     "Evidence",
     "LostReason",
+    "Pairs",
     "PoseGate",
     "VerificationModel",
     "Verdict",
@@ -52,6 +55,7 @@ __all__ = [
     "check_height",
     "check_scale",
     "default_model",
+    "distinct",
     "epipolar_support",
     "explained_confidence",
     "fit_model",
@@ -61,8 +65,6 @@ __all__ = [
     "plausible_scale",
     "prior_hypothesis",
     "prior_pairs",
-    "prior_poses",
-    "prior_support_floor",
     "reference_support",
     "refine_pose",
     "rival_pairs",

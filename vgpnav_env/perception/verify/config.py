@@ -1,5 +1,5 @@
-"""Settings of verification and recovery (:class:`VerifyConfig`) and the caller's pose gate
-(:class:`PoseGate`)."""
+"""Settings of verification (:class:`VerifyConfig`) and the caller's pose gate (:class:`PoseGate`).
+The recovery strategies' settings are :class:`~vgpnav_env.perception.recovery.RecoveryConfig`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from vgpnav_env.geometry import camera_yaw_pitch, wrap_angle
 
 @dataclass(frozen=True)
 class VerifyConfig:
-    """Settings of the checks and second chances (module docstring); None switches one off.
+    """Settings of the scale checks and of the verdict on a pose; None switches one off.
 
     Match counts are per reference pair; angles in degrees; distances in metres.
 
@@ -29,14 +29,6 @@ class VerifyConfig:
             peak (a table top leaves the floor below it).
         min_median_depth_m: a scale that puts the median confident query depth nearer than this
             is no scale.
-        second_round_below_inliers: with fewer consistent references than this (a failed pose
-            counts 0) a second round verifies references chosen around the first round's pose
-            hypotheses; the round with more consistent references wins (None: one round).
-        second_round_hypotheses: at most this many distinct pose hypotheses seed the second round.
-        second_round_radius: its database cameras lie within this distance of a hypothesis ...
-        second_round_max_angle_deg: ... and within this angle of its heading.
-        single_fallback_confidence: when motion averaging fails, a pair at least this confident
-            gives the pose alone, placed with the ground scale (needs scale recovery).
         max_epipolar_error_px: a match supports a pose when its epipolar error is at most this.
         min_support_matches: a reference supports a pose when it explains at least this many
             matches.
@@ -62,19 +54,8 @@ class VerifyConfig:
         pitch_range_deg: ... and its downward pitch within this range.
         prior_max_roll_deg: a pose inside a state estimate's prior counts as placed by it only
             with its roll within this.
-        prior_hypotheses: a frame lost inside a prior gets up to this many pose hypotheses there
-            (:func:`prior_poses`) ...
-        prior_grid_m: ... whose positions are searched on a grid of this step.
-        prior_support_per_m: a pose placed inside the prior needs this many supporting matches per
-            metre of the prior's radius, at most ``min_total_support`` (:func:`prior_support_floor`;
-            None: ``min_total_support``).
         confidence_matches: the support that halves a pose's score:
             ``strength / (strength + rival_strength + confidence_matches)``.
-        ray_slide_share: a verified pose whose position one pair's ray carries (at least this
-            share of the translation weight) may slide along that ray (:func:`slide_on_ray`;
-            None: never) ...
-        ray_slide_gain: ... to where the other references explain this fraction more matches ...
-        ray_slide_max_shift: ... by at most this distance.
         rival_confidence_ratio: a distinct rival whose most confident pair reaches this share of
             the confidence of the pose's best supporting pair makes the frame "ambiguous" (None:
             off) ...
@@ -94,11 +75,6 @@ class VerifyConfig:
     strong_rays_weight: float | None = 0.2
     max_under_ground: float = 0.03
     min_median_depth_m: float | None = 0.25
-    second_round_below_inliers: int | None = 3
-    second_round_hypotheses: int = 2
-    second_round_radius: float = 1.5
-    second_round_max_angle_deg: float = 35.0
-    single_fallback_confidence: float | None = 0.15
     max_epipolar_error_px: float = 2.0
     min_support_matches: int = 30
     min_supporting_references: int = 2
@@ -114,14 +90,8 @@ class VerifyConfig:
     ambiguity_references: int | None = 2
     max_roll_deg: float | None = 5.0
     prior_max_roll_deg: float = 1.5
-    prior_hypotheses: int = 3
-    prior_grid_m: float = 0.08
-    prior_support_per_m: float | None = 350.0
     pitch_range_deg: tuple[float, float] | None = (5.0, 40.0)
     confidence_matches: float = 100.0
-    ray_slide_share: float | None = 0.55
-    ray_slide_gain: float = 0.1
-    ray_slide_max_shift: float = 0.3
     rival_confidence_ratio: float | None = 0.9
     confident_rival_off_plane: int = 10
     decision: str = "rules"
@@ -143,8 +113,6 @@ class VerifyConfig:
             raise ValueError(f"min_median_depth_m must be > 0 m or None, got {self.min_median_depth_m}")
         if self.pose_height_tolerance is not None and self.pose_height_tolerance <= 0:
             raise ValueError(f"pose_height_tolerance must be > 0 m or None, got {self.pose_height_tolerance}")
-        if self.second_round_hypotheses < 1 or self.second_round_radius <= 0:
-            raise ValueError("need second_round_hypotheses >= 1 and second_round_radius > 0 m")
         if (
             self.max_epipolar_error_px <= 0
             or self.min_support_matches < 1
@@ -167,21 +135,12 @@ class VerifyConfig:
             raise ValueError(
                 f"min_explained_confidence must be in (0, 1] or None, got {self.min_explained_confidence}"
             )
-        if self.prior_support_per_m is not None and not self.prior_support_per_m > 0:
-            raise ValueError(f"prior_support_per_m must be > 0 or None, got {self.prior_support_per_m}")
         if not self.prior_max_roll_deg > 0:
             raise ValueError(f"prior_max_roll_deg must be > 0 deg, got {self.prior_max_roll_deg}")
         if self.ambiguity_references is not None and self.ambiguity_references < 1:
             raise ValueError(f"ambiguity_references must be >= 1 or None, got {self.ambiguity_references}")
         if self.rival_claim_ratio is not None and not 0 < self.rival_claim_ratio <= 1:
             raise ValueError(f"rival_claim_ratio must be in (0, 1] or None, got {self.rival_claim_ratio}")
-        if self.ray_slide_share is not None and not 0 < self.ray_slide_share <= 1:
-            raise ValueError(f"ray_slide_share must be in (0, 1] or None, got {self.ray_slide_share}")
-        if self.ray_slide_gain < 0 or not self.ray_slide_max_shift > 0:
-            raise ValueError(
-                f"need ray_slide_gain >= 0 and ray_slide_max_shift > 0 m, got "
-                f"{self.ray_slide_gain}, {self.ray_slide_max_shift}"
-            )
         if self.rival_confidence_ratio is not None and not self.rival_confidence_ratio > 0:
             raise ValueError(f"rival_confidence_ratio must be > 0 or None, got {self.rival_confidence_ratio}")
         if self.confident_rival_off_plane < 0:

@@ -5,17 +5,22 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, make_pose
-from vgpnav_env.perception.backbones.base import BackboneOutput
+from vgpnav_env.geometry import make_pose, rotation_angle
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, average_motion, pair_centre
 from vgpnav_env.perception.verify.config import VerifyConfig
-from vgpnav_env.perception.verify.support import pair_support
+from vgpnav_env.perception.verify.support import Pairs
+
+
+def distinct(T_a: NDArray[np.float64], T_b: NDArray[np.float64], config: VerifyConfig) -> bool:
+    """Whether two camera poses are distinct places: farther apart than ``rival_distance`` metres or
+    turned by more than ``rival_angle_deg``."""
+    far = np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > config.rival_distance
+    return bool(far or rotation_angle(T_a[:3, :3], T_b[:3, :3]) > np.deg2rad(config.rival_angle_deg))
 
 
 def rival_poses(
     T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
+    pairs: Pairs,
     support: NDArray[np.int64],
     scale: float,
     averaging: MotionAveragingConfig,
@@ -24,6 +29,7 @@ def rival_poses(
     (``support`` 0; :func:`rival_pairs` also zeroes the pairs it explains in small part): the
     weighted motion average of those pairs (when it succeeds), then each such pair on its own
     (rotation ``R_wi R_iq``, centre along its ray at ``scale`` metres per backbone unit)."""
+    T_wi, out = pairs.T_wi, pairs.out
     rest = (out.confidence > 0) & (support == 0)
     if not rest.any():
         return []
@@ -39,21 +45,13 @@ def rival_poses(
     return rivals
 
 
-def rival_pairs(
-    support: NDArray[np.int64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    config: VerifyConfig,
-    own: NDArray[np.int64] | None = None,
-) -> NDArray[np.int64]:
+def rival_pairs(support: NDArray[np.int64], pairs: Pairs) -> NDArray[np.int64]:
     """``support`` (k,) of a pose (0 where under ``min_support_matches``), also 0 where the pose
     explains fewer than ``rival_claim_ratio`` of the matches the pair's own relative pose explains
-    (:func:`pair_support`; ``own`` when already computed): the pairs :func:`rival_poses` makes
-    rivals of."""
+    (:attr:`Pairs.own`): the pairs :func:`rival_poses` makes rivals of."""
+    config = pairs.config
     support = np.where(support >= config.min_support_matches, support, 0)
     if config.rival_claim_ratio is None:
         return support
-    own = pair_support(T_wi, out, camera, config) if own is None else own
-    weak = support < config.rival_claim_ratio * own
+    weak = support < config.rival_claim_ratio * pairs.own
     return np.where(weak, 0, support)

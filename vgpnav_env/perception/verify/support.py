@@ -1,13 +1,15 @@
 """Support: how many of the query's feature matches with each reference a pose explains.
 
 Poses are ``T_wq`` / ``T_wi`` (OpenCV camera -> world, metres); matches are per reference (m_i, 4)
-pixels ``(u_q, v_q, u_i, v_i)`` (:attr:`BackboneOutput.matches`).
+pixels ``(u_q, v_q, u_i, v_i)`` (:attr:`BackboneOutput.matches`). The query's pairs a pose is
+checked against travel together as one :class:`Pairs` value.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +24,24 @@ from vgpnav_env.perception.backbones.classical import (
     triangulate_query_depth,
 )
 from vgpnav_env.perception.verify.config import VerifyConfig
+
+
+@dataclass(frozen=True, eq=False)
+class Pairs:
+    """The query's pairs with its references that a pose is checked against: the references' poses
+    ``T_wi`` (k, 4, 4), the backbone output ``out`` of the query with exactly these references, the
+    ``camera`` and the verification settings ``config``. Immutable; compared by identity (it holds
+    arrays), and its :attr:`own` support is computed once."""
+
+    T_wi: NDArray[np.float64]
+    out: BackboneOutput
+    camera: PinholeCamera
+    config: VerifyConfig
+
+    @cached_property
+    def own(self) -> NDArray[np.int64]:
+        """(k,) the pairs' own support (:func:`pair_support`), computed once per value."""
+        return pair_support(self)
 
 
 def epipolar_support(
@@ -83,19 +103,14 @@ def off_plane_matches(out: BackboneOutput, threshold_px: float) -> BackboneOutpu
     return replace(out, matches=kept)
 
 
-def reference_support(
-    T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    config: VerifyConfig,
-) -> NDArray[np.int64]:
+def reference_support(T_wq: NDArray[np.float64], pairs: Pairs) -> NDArray[np.int64]:
     """(k,) matches of each reference that the pose ``T_wq`` explains: :func:`epipolar_support` of
     the backbone's ``matches``; a backbone without matches (``matches`` None) counts a pair's
     ``n_matches`` when its own relative pose agrees with ``T_wq`` (rotation and direction of the
     query centre seen from the reference within ``rival_angle_deg``), else 0."""
+    T_wi, out, config = pairs.T_wi, pairs.out, pairs.config
     if out.matches is not None:
-        return epipolar_support(T_wq, T_wi, out.matches, camera, config.max_epipolar_error_px)
+        return epipolar_support(T_wq, T_wi, out.matches, pairs.camera, config.max_epipolar_error_px)
     T_iq_pose = invert_pose(T_wi) @ T_wq
     T_iq = out.T_iq
     limit = np.deg2rad(config.rival_angle_deg)
@@ -110,67 +125,59 @@ def reference_support(
     return np.where(agree, out.n_matches, 0).astype(np.int64)
 
 
-def pair_support(
-    T_wi: NDArray[np.float64], out: BackboneOutput, camera: PinholeCamera, config: VerifyConfig
-) -> NDArray[np.int64]:
+def pair_support(pairs: Pairs) -> NDArray[np.int64]:
     """(k,) matches of each pair that the pair's own relative pose ``T_iq`` explains (the query
     where that pair alone puts it, :func:`epipolar_support`); a backbone without matches: its
-    ``n_matches``. Pairs without confidence count 0."""
+    ``n_matches``. Pairs without confidence count 0. Cached as :attr:`Pairs.own`."""
+    T_wi, out = pairs.T_wi, pairs.out
     if out.matches is None:
         return np.where(out.confidence > 0, out.n_matches, 0).astype(np.int64)
     own = np.zeros(len(T_wi), np.int64)
+    error_px = pairs.config.max_epipolar_error_px
     for i in np.flatnonzero(out.confidence > 0):
         T = T_wi[i] @ out.T_iq[i]
-        own[i] = epipolar_support(T, T_wi[i][None], [out.matches[i]], camera, config.max_epipolar_error_px)[0]
+        own[i] = epipolar_support(T, T_wi[i][None], [out.matches[i]], pairs.camera, error_px)[0]
     return own
 
 
 def explained_confidence(
-    T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    config: VerifyConfig,
-    support: NDArray[np.int64] | None = None,
-    own: NDArray[np.int64] | None = None,
+    T_wq: NDArray[np.float64], pairs: Pairs, support: NDArray[np.int64] | None = None
 ) -> float:
     """The share in [0, 1] of the backbone's pair confidence that the pose ``T_wq`` explains:
     ``sum_i c_i min(1, s_i / o_i) / sum_i c_i`` over the pairs with confidence ``c_i > 0``, where
     ``s_i`` counts the matches of pair i the pose explains (:func:`reference_support`; ``support``
     when already computed) and ``o_i`` those the pair's own relative pose ``T_iq`` explains
-    (:func:`pair_support`; ``own`` when already computed). 0 when no pair has confidence.
+    (:attr:`Pairs.own`). 0 when no pair has confidence.
     """
-    c = np.asarray(out.confidence, float)
-    pairs = np.flatnonzero(c > 0)
-    if len(pairs) == 0:
+    c = np.asarray(pairs.out.confidence, float)
+    idx = np.flatnonzero(c > 0)
+    if len(idx) == 0:
         return 0.0
-    s = reference_support(T_wq, T_wi, out, camera, config) if support is None else np.asarray(support)
-    own = (pair_support(T_wi, out, camera, config) if own is None else np.asarray(own))[pairs]
-    share = np.minimum(s[pairs] / np.maximum(own, 1.0), 1.0)
-    return float((c[pairs] * share).sum() / c[pairs].sum())
+    s = reference_support(T_wq, pairs) if support is None else np.asarray(support)
+    own = np.asarray(pairs.own)[idx]
+    share = np.minimum(s[idx] / np.maximum(own, 1.0), 1.0)
+    return float((c[idx] * share).sum() / c[idx].sum())
 
 
 def refine_pose(
     T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    matches: Sequence[NDArray[np.floating]],
-    camera: PinholeCamera,
-    config: VerifyConfig,
+    pairs: Pairs,
     *,
     max_shift: float,
     max_height: float = 0.05,
     max_rotation_deg: float = 1.5,
 ) -> NDArray[np.float64]:
-    """``T_wq`` moved to the pose whose epipolar geometry with the references ``T_wi`` (k, 4, 4)
-    best explains their ``matches`` (per reference (m_i, 4) pixels, :attr:`BackboneOutput.matches`):
+    """``T_wq`` moved to the pose whose epipolar geometry with the references ``pairs.T_wi`` best
+    explains their matches (:attr:`BackboneOutput.matches`, which ``pairs.out`` must have):
     robust (Cauchy, ``max_epipolar_error_px``) least squares of the Sampson distances over all
     references at once, rotation and metric position (the references' known poses fix the scale),
     within ``max_rotation_deg`` about each axis, ``max_shift`` metres horizontally and
     ``max_height`` vertically of ``T_wq`` (a pose refined freely can slide to a wrong one that a
     repeated texture supports as well).
-    A pose a few centimetres or a degree off (from the prior, or one pair's rotation) explains few
-    of the matches within the verification's 2 pixels; refined, the references that see the place
-    explain it. Returns ``T_wq`` unchanged when fewer than 8 matches are given."""
+    A pose a few centimetres or a degree off explains few of the matches within
+    ``max_epipolar_error_px``; refined, the references that see the place explain it. Returns
+    ``T_wq`` unchanged when fewer than 8 matches are given."""
+    T_wi, matches, camera, config = pairs.T_wi, pairs.out.matches, pairs.camera, pairs.config
     m = [np.asarray(a, float).reshape(-1, 4) for a in matches]
     ref = np.concatenate([np.full(len(a), i) for i, a in enumerate(m)]).astype(int)
     if len(ref) < 8:

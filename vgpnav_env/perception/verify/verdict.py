@@ -15,17 +15,17 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from vgpnav_env.geometry import PinholeCamera, camera_yaw_pitch, rotation_angle
+from vgpnav_env.geometry import camera_yaw_pitch
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig
 from vgpnav_env.perception.verify.config import PoseGate, VerifyConfig
 from vgpnav_env.perception.verify.model import VerificationModel, default_model
 from vgpnav_env.perception.verify.reasons import VerifyCheck
-from vgpnav_env.perception.verify.rivals import rival_pairs, rival_poses
+from vgpnav_env.perception.verify.rivals import distinct, rival_pairs, rival_poses
 from vgpnav_env.perception.verify.support import (
+    Pairs,
     explained_confidence,
     off_plane_matches,
-    pair_support,
     reference_support,
 )
 
@@ -168,19 +168,15 @@ class Verdict:
 
 def verify_pose(
     T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    config: VerifyConfig,
+    pairs: Pairs,
     *,
     rivals: Sequence[NDArray[np.float64]] = (),
     camera_z: float = float("nan"),
-    own: NDArray[np.int64] | None = None,
     prior: PoseGate | None = None,
     model: VerificationModel | None = None,
 ) -> Verdict:
-    """Check the pose ``T_wq`` (metric, W) against the query's matches with references ``T_wi``
-    (k, 4, 4; ``out``: the backbone output of the query with exactly these references).
+    """Check the pose ``T_wq`` (metric, W) against the query's ``pairs`` (the references' poses
+    ``T_wi`` and the backbone output of the query with exactly these references).
 
     The pose must keep the camera's roll and pitch of a ground robot's mount (``max_roll_deg``,
     ``pitch_range_deg``) and its height (within ``pose_height_tolerance`` of ``camera_z``, the
@@ -213,17 +209,20 @@ def verify_pose(
     :class:`~vgpnav_env.perception.pipeline.Perceiver` then loses it as "inconsistent motion", or
     takes the rival the prior picks, :func:`prior_hypothesis`).
     """
-    raw = reference_support(T_wq, T_wi, out, camera, config)
+    out, config = pairs.out, pairs.config
+    raw = reference_support(T_wq, pairs)
     support = np.where(raw >= config.min_support_matches, raw, 0)
     strength = int(support.sum())
     explained = support > 0
-    flat = off_plane_matches(out, config.plane_threshold_px) if config.plane_threshold_px else None
+    flat = None
+    if config.plane_threshold_px:
+        flat = replace(pairs, out=off_plane_matches(out, config.plane_threshold_px))
 
     def off_plane(T: NDArray[np.float64], among: NDArray[np.bool_]) -> int:
         """The most matches off its dominant plane that one reference of ``among`` gives ``T``."""
         if flat is None or not among.any():
             return config.min_off_plane_matches if flat is None else 0
-        return int(reference_support(T, T_wi, flat, camera, config)[among].max())
+        return int(reference_support(T, flat)[among].max())
 
     rival_strength, rival = 0, None  # the strongest distinct rival
     # A rival whose best pair is about as confident as the pose's best pair (rival_confidence_ratio).
@@ -237,12 +236,9 @@ def verify_pose(
     for T in rivals:
         if implausible_mount(T, camera_z, config):
             continue
-        distinct = np.linalg.norm(T[:3, 3] - T_wq[:3, 3]) > config.rival_distance or rotation_angle(
-            T[:3, :3], T_wq[:3, :3]
-        ) > np.deg2rad(config.rival_angle_deg)
-        if not distinct:
+        if not distinct(T, T_wq, config):
             continue
-        theirs = reference_support(T, T_wi, out, camera, config)
+        theirs = reference_support(T, pairs)
         claimed = ~explained if claim is None else ~explained | (raw < claim * theirs)
         theirs_alone = claimed & (theirs >= config.min_support_matches)
         if not _enough_references(theirs[theirs_alone], config):
@@ -263,10 +259,9 @@ def verify_pose(
         if placed and prior.admits(T) and value > inside_strength:
             inside_strength, inside = value, T
     n = int(explained.sum())
-    own = pair_support(T_wi, out, camera, config) if own is None else own
     evidence = Evidence.of(
         raw,
-        own,
+        pairs.own,
         out,
         off_plane=off_plane(T_wq, explained) if flat is not None else 0,
         rival_strength=inside_strength if placed else rival_strength,
@@ -316,7 +311,7 @@ def verify_pose(
             detail = f"a pose {distance:.1f} m away has a pair as confident as the pose's best"
             return VerifyCheck.AMBIGUITY, detail
         if config.min_explained_confidence is not None:
-            share = explained_confidence(T_wq, T_wi, out, camera, config, raw, own)
+            share = explained_confidence(T_wq, pairs, raw)
             if share < config.min_explained_confidence:
                 return VerifyCheck.SHARE, f"the pose explains {share:.0%} of the pairs' confidence"
         return "", f"{n} references, support {strength}, rival {rival_strength}"
@@ -407,40 +402,29 @@ def _model_check(evidence: Evidence, probability: float, config: VerifyConfig) -
 
 @dataclass(frozen=True)
 class Assessment:
-    """:func:`assess`'s answer: the ``verdict`` on the pose, the ``rivals`` it was weighed against
-    and the pairs' own support ``own`` (k,), for a caller that weighs another pose of these pairs."""
+    """:func:`assess`'s answer: the ``verdict`` on the pose and the ``rivals`` it was weighed
+    against, for a caller that weighs another pose of these pairs."""
 
     verdict: Verdict
     rivals: list[NDArray[np.float64]]
-    own: NDArray[np.int64]
 
 
 def assess(
     T_wq: NDArray[np.float64],
-    T_wi: NDArray[np.float64],
-    out: BackboneOutput,
-    camera: PinholeCamera,
-    config: VerifyConfig,
+    pairs: Pairs,
     *,
     scale: float,
     averaging: MotionAveragingConfig,
     camera_z: float = float("nan"),
-    own: NDArray[np.int64] | None = None,
     prior: PoseGate | None = None,
     rivals: Sequence[NDArray[np.float64]] = (),
 ) -> Assessment:
     """The chain support -> rivals -> verdict of one pose ``T_wq`` (metric, W) against the query's
-    pairs with references ``T_wi`` (k, 4, 4; ``out``: the backbone output with exactly these):
-    the pairs it does not explain, or in small part (:func:`rival_pairs`), give its rival poses
-    (:func:`rival_poses`, placed at ``scale`` metres per backbone unit), appended to ``rivals``;
-    :func:`verify_pose` weighs it against them, with the installed calibrated model
-    (:func:`~vgpnav_env.perception.verify.model.default_model`). ``own``: the pairs' own support
-    when already computed (:func:`pair_support`)."""
-    own = pair_support(T_wi, out, camera, config) if own is None else own
-    support = rival_pairs(reference_support(T_wq, T_wi, out, camera, config), T_wi, out, camera, config, own)
-    theirs = [*rivals, *rival_poses(T_wq, T_wi, out, support, scale, averaging)]
-    verdict = verify_pose(
-        T_wq, T_wi, out, camera, config, rivals=theirs, camera_z=camera_z, own=own, prior=prior,
-        model=default_model(),
-    )  # fmt: skip
-    return Assessment(verdict, theirs, own)
+    ``pairs``: the pairs it does not explain, or in small part (:func:`rival_pairs`), give its
+    rival poses (:func:`rival_poses`, placed at ``scale`` metres per backbone unit), appended to
+    ``rivals``; :func:`verify_pose` weighs it against them, with the installed calibrated model
+    (:func:`~vgpnav_env.perception.verify.model.default_model`)."""
+    support = rival_pairs(reference_support(T_wq, pairs), pairs)
+    theirs = [*rivals, *rival_poses(T_wq, pairs, support, scale, averaging)]
+    verdict = verify_pose(T_wq, pairs, rivals=theirs, camera_z=camera_z, prior=prior, model=default_model())
+    return Assessment(verdict, theirs)
