@@ -321,11 +321,10 @@ def run_bench(run: BenchRun, workers: Workers | None = None) -> dict[str, Any]:
     try:
         databases = {}
         if plan.backbone not in (None, "model"):
-            several = workers.workers > 1 or workers.ray_address is not None
             for scene in dict.fromkeys(e.scene_id for _, e in todo):
                 given = {"database_dir": run.databases[scene]} if scene in run.databases else {}
                 kwargs = prepare_database(
-                    scene_source(scene), env_kwargs, {**wrapper, **given}, run.progress, several
+                    scene_source(scene), env_kwargs, {**wrapper, **given}, run.progress, workers
                 )
                 databases[scene] = str(kwargs["database_dir"])
         setup = BenchSetup(plan, env_kwargs, wrapper, databases)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import re
 import shutil
 from dataclasses import replace
@@ -103,6 +105,29 @@ def test_preparation_on_one_thread_gives_the_same_database(
     np.testing.assert_array_equal(serial.index.database, database.index.database)
     np.testing.assert_array_equal(serial.prior.logodds, database.prior.logodds)
     assert serial.z_ground == database.z_ground
+
+
+def test_prior_on_two_processes_gives_the_same_map(
+    database: Database,
+    build: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # 16 frames, 4 per chunk: this process and one spawned helper share the chunks.
+    monkeypatch.setattr(database_module, "PRIOR_FRAMES_PER_PROCESS", 4)
+    copy = tmp_path / "db"
+    shutil.copytree(build / "database", copy, ignore=shutil.ignore_patterns("prior.*"))
+    caplog.set_level(logging.INFO, logger=database_module.__name__)
+    helped = Database.open(
+        copy, config=DatabaseConfig(vlad=FAST_VLAD, prior_stride=3), progress=False, processes=2
+    )
+    np.testing.assert_array_equal(helped.prior.logodds, database.prior.logodds)
+    assert helped.z_ground == database.z_ground
+    stats = json.loads((copy / "index" / "prior.json").read_text())["stats"]
+    assert stats["frames_tried"] == 16 and stats["frames_used"] >= 8
+    in_helper = re.search(r"(\d+) of 16 frames reconstructed in 1 helper", caplog.text)
+    assert in_helper is not None and 4 <= int(in_helper.group(1)) <= 12, caplog.text
 
 
 def test_index_invalidated_when_run_changes(build: Path, tmp_path: Path) -> None:

@@ -200,21 +200,27 @@ def write_run(
     on_frame: Callable[[], None] | None = None,
 ) -> None:
     """Write ``run`` (and optional depth (N, H, W)) into an existing empty ``directory`` (not atomic;
-    see :func:`save_run`); ``on_frame()`` is called after each image is written."""
+    see :func:`save_run`); images are encoded on the process's thread pool
+    (:func:`~vgpnav_env.perception.backbones.threads.thread_map`), ``on_frame()`` is called (from
+    one of its threads) after each image is written."""
     meta = _run_metadata(run)
     if depth is not None:
         depth = np.asarray(depth)
         if depth.shape != run.images.shape[:3]:
             raise ValueError(f"depth shape {depth.shape} must be (N, H, W) = {run.images.shape[:3]}")
     (directory / "images").mkdir()
-    for i, rgb in enumerate(run.images):
-        ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    from vgpnav_env.perception.backbones.threads import thread_map  # here: perception imports runs
+
+    def write_image(i: int) -> None:
+        ok, png = cv2.imencode(".png", cv2.cvtColor(run.images[i], cv2.COLOR_RGB2BGR))
         if not ok:
             raise OSError(f"could not encode frame {i} as PNG")
         # Not fsynced (costs ~6 ms per frame): a torn PNG fails to decode, so loading still detects it.
         _write_bytes(directory / "images" / f"{i:06d}.png", png.tobytes(), sync=False)
         if on_frame is not None:
             on_frame()
+
+    thread_map(write_image, range(len(run)), 0)
     _write_npy(directory / "poses.npy", run.poses.astype(np.float64))
     cam = run.camera
     write_json(
@@ -317,7 +323,8 @@ def _image_files(path: Path, n: int) -> list[Path]:
 
 
 def load_run(path: Path | str) -> Run:
-    """Load and validate a run directory (eagerly: all images in memory).
+    """Load and validate a run directory (eagerly: all images in memory, decoded on the process's
+    thread pool).
 
     Raises :class:`RunFormatError` naming the problem and the path for a missing, partial,
     damaged, foreign or unsupported-version directory.
@@ -328,7 +335,10 @@ def load_run(path: Path | str) -> Run:
     cam = _read_camera(path, meta)
     poses = _read_poses(path, n)
     images = np.empty((n, cam.height, cam.width, 3), np.uint8)
-    for i, file in enumerate(_image_files(path, n)):
+    from vgpnav_env.perception.backbones.threads import thread_map  # here: perception imports runs
+
+    def read_image(item: tuple[int, Path]) -> None:
+        i, file = item
         bgr = cv2.imread(str(file), cv2.IMREAD_COLOR)
         if bgr is None:
             raise RunFormatError(f"{file}: unreadable PNG image")
@@ -337,6 +347,8 @@ def load_run(path: Path | str) -> Run:
                 f"{file}: image shape {bgr.shape} differs from intrinsics {images.shape[1:]}"
             )
         images[i] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    thread_map(read_image, list(enumerate(_image_files(path, n))), 0)
     return Run(images, poses, cam, meta)
 
 

@@ -22,8 +22,14 @@ the cache; every file is written atomically):
   per-frame ground peaks; points are classified by height and fused like the online map.
 
 Each step that computes shows a progress bar naming what it does; images are processed on the
-backbone's threads (``ClassicalConfig.threads``). On home (606 images, 2 cores) the three steps
-took 23 + 27 + 63 s before threads, shared features and the faster backbone.
+backbone's threads (``ClassicalConfig.threads``). The prior's frames are independent (each is
+reconstructed from stored features only) and mostly Python-bound, so they may also be spread over
+processes (``open_database(..., processes=N)``; the caller's ``__main__`` must be importable
+without side effects, as for any ``spawn`` process pool): this process and spawned helpers that open
+the database from its cache take chunks of frames; the map is fused here in frame order, so it does
+not depend on the process or thread count. On home (606 images, 2 cores) the three steps took
+23 + 27 + 63 s before threads, shared features and the faster backbone; 10 + 8 + 11 s with them
+and the prior on 2 processes.
 """
 
 from __future__ import annotations
@@ -32,8 +38,11 @@ import json
 import logging
 import os
 import time
-from collections.abc import Hashable
+from collections.abc import Hashable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Literal
 
@@ -54,7 +63,7 @@ from vgpnav_env.perception.backbones.classical import (
     rootsift,
 )
 from vgpnav_env.perception.backbones.stereo import SweepConfig
-from vgpnav_env.perception.backbones.threads import thread_map
+from vgpnav_env.perception.backbones.threads import configure_threads, cpu_share, thread_map
 from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
 from vgpnav_env.perception.points import depth_points
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex, nearby_cameras
@@ -70,6 +79,11 @@ _PRIOR_FILE = "prior.npz"
 _PRIOR_META = "prior.json"
 #: Bumped whenever the stored feature format changes.
 FEATURES_VERSION = 1
+#: Prior frames one task reconstructs (the unit of work spread over processes).
+PRIOR_CHUNK = 4
+#: Fewest prior frames per process for which helper processes are spawned: a helper needs ~2 s to
+#: start and open the database, the time of ~20 frames on home at 320x240.
+PRIOR_FRAMES_PER_PROCESS = 24
 #: The stored features' files (arrays, metadata) and descriptor array name, by kind.
 _FEATURE_FILES = {
     "rootsift": ("features.npz", "features.json", "sift"),
@@ -417,12 +431,15 @@ class Database:
         config: DatabaseConfig | None = None,
         backbone_config: ClassicalConfig | None = None,
         progress: bool = True,
+        processes: int = 1,
     ) -> Database:
         """Load the database run at ``run_dir`` (or ``<build>/database``) with its cached index and prior.
 
         ``backbone_config`` configures the classical backbone used for the features and the prior
         (default :class:`ClassicalConfig`). What is computed (not loaded) shows a progress bar per
-        step unless ``progress`` is False. Raises :class:`~vgpnav_env.runs.RunFormatError` if the
+        step unless ``progress`` is False. ``processes``: how many processes reconstruct the prior
+        map when it is computed (this one and spawned helpers: :func:`reconstruct_prior_frames`;
+        the map does not depend on it). Raises :class:`~vgpnav_env.runs.RunFormatError` if the
         directory is not a readable run.
         """
         config = config or DatabaseConfig()
@@ -482,12 +499,14 @@ class Database:
         )
         if config.prior == "database":
             t0, c0 = time.perf_counter(), time.process_time()
-            db._load_or_build_prior(cache, backbone_config, progress)
+            db._load_or_build_prior(cache, backbone_config, progress, processes)
             timings["prior"] = time.perf_counter() - t0
             timings["prior_cpu"] = time.process_time() - c0
         return db
 
-    def _load_or_build_prior(self, cache: Path, backbone_config: ClassicalConfig, progress: bool) -> None:
+    def _load_or_build_prior(
+        self, cache: Path, backbone_config: ClassicalConfig, progress: bool, processes: int
+    ) -> None:
         key = _jsonable_key(_prior_key(self.config, backbone_config))
         meta_file, arrays_file = cache / _PRIOR_META, cache / _PRIOR_FILE
         if meta_file.is_file() and arrays_file.is_file():
@@ -513,6 +532,7 @@ class Database:
             self,
             ClassicalBackbone(prior_backbone_config(self.config, backbone_config), self.feature_cache),
             progress=progress,
+            processes=processes,
         )
         atomic_write(
             arrays_file,
@@ -562,19 +582,21 @@ def open_database(
     path: str | os.PathLike,
     config: DatabaseConfig | None = None,
     backbone_config: ClassicalConfig | None = None,
+    processes: int = 1,
 ) -> Database:
     """The database at ``path`` (a database run or a build directory), opened once per process.
 
     The one way to open a database: :meth:`Database.open` (index, stored features and prior
-    map from the on-disk cache, computed when missing) on the first call for a directory and
-    settings (defaults: :class:`DatabaseConfig`, :class:`ClassicalConfig`), the same object after
-    that. A run changed on disk while the process runs is not noticed.
+    map from the on-disk cache, computed when missing, the prior on ``processes`` processes) on
+    the first call for a directory and settings (defaults: :class:`DatabaseConfig`,
+    :class:`ClassicalConfig`), the same object after that. A run changed on disk while the
+    process runs is not noticed.
     """
     path = database_run_dir(Path(path).resolve())
     config, backbone_config = config or DatabaseConfig(), backbone_config or ClassicalConfig()
     key = (str(path), repr(config), repr(backbone_config))
     if key not in _OPEN:
-        _OPEN[key] = Database.open(path, config=config, backbone_config=backbone_config)
+        _OPEN[key] = Database.open(path, config=config, backbone_config=backbone_config, processes=processes)
     return _OPEN[key]
 
 
@@ -601,53 +623,148 @@ def prior_neighbours(poses: NDArray[np.float64], j: int, config: DatabaseConfig)
     return np.array(picked, np.int64)
 
 
+@dataclass(frozen=True)
+class PriorFrame:
+    """One reconstructed prior frame: its metric camera-frame points (n, 3) (OpenCV frame, metres)
+    and, when its ground peak was found, the floor's world height (metres)."""
+
+    points: NDArray[np.float64]
+    ground_z: float | None
+
+
+def reconstruct_prior_frame(db: Database, backbone: ClassicalBackbone, j: int) -> PriorFrame | None:
+    """Database frame ``j`` reconstructed against its :func:`prior_neighbours` and scaled by their
+    known baselines (module docstring); None when it has too few neighbours, scale-linked pairs
+    or confident points. Depends on ``j`` and the database only (not on frames done before)."""
+    cfg = db.config
+    refs = prior_neighbours(db.poses, j, cfg)
+    if len(refs) < 2:
+        return None
+    if j in backbone.feature_cache:
+        remember_features(db.images[j], backbone.config, backbone.feature_cache.get(j))
+    out = backbone(
+        db.images[j], [db.images[i] for i in refs], db.camera, reference_keys=[int(i) for i in refs]
+    )
+    ok = out.scale_valid & (out.confidence > 0)
+    if not ok.any():
+        return None
+    T_ji = invert_pose(db.poses[j]) @ db.poses[refs]  # reference i -> query j, metric
+    metric = np.linalg.norm(T_ji[ok, :3, 3], axis=1)
+    units = np.linalg.norm(out.T_qi[ok, :3, 3], axis=1)
+    good = units > 1e-9
+    if not good.any():
+        return None
+    scale = float(np.median(metric[good] / units[good]))
+    pts, conf = depth_points(
+        db.camera,
+        out.query_depth * scale,
+        out.query_depth_confidence,
+        stride=cfg.prior_point_stride,
+        min_confidence=cfg.prior_min_confidence,
+        max_depth=cfg.prior_max_depth,
+    )
+    if len(pts) < 50:
+        return None
+    g = ground_peak(pts, db.poses[j][:3, :3], conf)
+    return PriorFrame(pts, float(db.poses[j][2, 3] + g.height_b) if g.found else None)
+
+
+#: A prior helper process's database and backbone (set by :func:`_start_prior_helper`).
+_HELPER: tuple[Database, ClassicalBackbone] | None = None
+
+
+def _start_prior_helper(
+    path: str, config: DatabaseConfig, backbone_config: ClassicalConfig, threads: int
+) -> None:
+    """Initializer of a prior helper process: ``threads`` threads, the database from its cache."""
+    global _HELPER
+    configure_threads(threads=threads)
+    db = Database.open(
+        path, config=replace(config, prior="none"), backbone_config=backbone_config, progress=False
+    )
+    _HELPER = (db, ClassicalBackbone(prior_backbone_config(config, backbone_config), db.feature_cache))
+
+
+def _reconstruct_in_helper(frames: Sequence[int]) -> list[PriorFrame | None]:
+    assert _HELPER is not None, "not a prior helper process"
+    db, backbone = _HELPER
+    return [reconstruct_prior_frame(db, backbone, j) for j in frames]
+
+
+def _advance(bar: tqdm, n: int, future: Future) -> None:
+    if not future.cancelled():
+        bar.update(n)
+
+
+def reconstruct_prior_frames(
+    db: Database,
+    backbone: ClassicalBackbone,
+    frames: Sequence[int],
+    processes: int = 1,
+    progress: bool = False,
+) -> list[PriorFrame | None]:
+    """:func:`reconstruct_prior_frame` of each of ``frames``, in order, on up to ``processes``
+    processes (this one plus spawned helpers, each on its share of this process's threads; helpers
+    only for at least :data:`PRIOR_FRAMES_PER_PROCESS` frames each). Helpers take chunks of
+    :data:`PRIOR_CHUNK` frames from the front; this process takes the chunks not yet started from
+    the back, so whoever is faster does more. ``progress`` shows a progress bar."""
+    frames = list(frames)
+    chunks = [frames[i : i + PRIOR_CHUNK] for i in range(0, len(frames), PRIOR_CHUNK)]
+    processes = max(1, min(processes, len(frames) // PRIOR_FRAMES_PER_PROCESS))
+    threads = max(1, cpu_share() // processes)
+    done: list[list[PriorFrame | None] | None] = [None] * len(chunks)
+    desc = f"prior map: reconstructing {len(frames)} database frames"
+    with tqdm(total=len(frames), desc=desc, unit="frame", disable=not progress) as bar:
+
+        def here(i: int, backbone: ClassicalBackbone) -> None:
+            done[i] = [reconstruct_prior_frame(db, backbone, j) for j in chunks[i]]
+            bar.update(len(chunks[i]))
+
+        if processes == 1:
+            for i in range(len(chunks)):
+                here(i, backbone)
+            return [frame for chunk in done for frame in chunk or []]
+        local = ClassicalBackbone(replace(backbone.config, threads=threads), backbone.feature_cache)
+        setup = (str(db.path), db.config, backbone.config, threads)
+        pool = ProcessPoolExecutor(
+            processes - 1, get_context("spawn"), initializer=_start_prior_helper, initargs=setup
+        )
+        try:
+            futures = [pool.submit(_reconstruct_in_helper, chunk) for chunk in chunks]
+            for future, chunk in zip(futures, chunks, strict=True):
+                future.add_done_callback(partial(_advance, bar, len(chunk)))
+            for i in reversed(range(len(chunks))):
+                if futures[i].cancel():
+                    here(i, local)
+            helped = [i for i in range(len(chunks)) if done[i] is None]
+            for i in helped:
+                done[i] = futures[i].result()
+            logger.info(
+                "prior map: %d of %d frames reconstructed in %d helper processes",
+                sum(len(chunks[i]) for i in helped),
+                len(frames),
+                processes - 1,
+            )
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    return [frame for chunk in done for frame in chunk or []]
+
+
 def build_prior(
-    db: Database, backbone: ClassicalBackbone, progress: bool = False
+    db: Database, backbone: ClassicalBackbone, progress: bool = False, processes: int = 1
 ) -> tuple[LogOddsMap, float, dict[str, Any]]:
     """The prior log-odds map, the estimated floor height and build statistics (see module docstring).
 
     A frame's features come from the backbone's feature cache (the database's stored features)
-    when it holds them; ``progress`` shows a progress bar over the frames."""
+    when it holds them; the frames are reconstructed on ``processes`` processes (see
+    :func:`reconstruct_prior_frames`) and fused here in frame order;
+    ``progress`` shows a progress bar over the frames."""
     cfg = db.config
-    camera = db.camera
-    frames: list[tuple[int, NDArray[np.float64]]] = []  # (frame, metric camera-frame points)
-    ground_z: list[float] = []
     t0 = time.perf_counter()
     tried = range(0, len(db), cfg.prior_stride)
-    desc = f"prior map: reconstructing {len(tried)} database frames"
-    for j in tqdm(tried, desc=desc, unit="frame", disable=not progress):
-        refs = prior_neighbours(db.poses, j, cfg)
-        if len(refs) < 2:
-            continue
-        if j in backbone.feature_cache:
-            remember_features(db.images[j], backbone.config, backbone.feature_cache.get(j))
-        out = backbone(
-            db.images[j], [db.images[i] for i in refs], camera, reference_keys=[int(i) for i in refs]
-        )
-        ok = out.scale_valid & (out.confidence > 0)
-        if not ok.any():
-            continue
-        T_ji = invert_pose(db.poses[j]) @ db.poses[refs]  # reference i -> query j, metric
-        metric = np.linalg.norm(T_ji[ok, :3, 3], axis=1)
-        units = np.linalg.norm(out.T_qi[ok, :3, 3], axis=1)
-        good = units > 1e-9
-        if not good.any():
-            continue
-        scale = float(np.median(metric[good] / units[good]))
-        pts, conf = depth_points(
-            camera,
-            out.query_depth * scale,
-            out.query_depth_confidence,
-            stride=cfg.prior_point_stride,
-            min_confidence=cfg.prior_min_confidence,
-            max_depth=cfg.prior_max_depth,
-        )
-        if len(pts) < 50:
-            continue
-        g = ground_peak(pts, db.poses[j][:3, :3], conf)
-        if g.found:
-            ground_z.append(float(db.poses[j][2, 3] + g.height_b))
-        frames.append((j, pts))
+    reconstructed = reconstruct_prior_frames(db, backbone, tried, processes, progress)
+    frames = [(j, f.points) for j, f in zip(tried, reconstructed, strict=True) if f is not None]
+    ground_z = [f.ground_z for f in reconstructed if f is not None and f.ground_z is not None]
     z_ground = float(np.median(ground_z)) if ground_z else 0.0
     fused = LogOddsMap(db.map_spec)
     for j, pts in frames:
