@@ -34,6 +34,11 @@ order of ``items``.
 A running task may call :func:`note` (e.g. ``"episode 2: step 40"``): the note is shown beside
 its map's progress bar, from this process or from worker processes (through a queue; notes from
 Ray tasks are not shown), so that tasks of a minute or more show what they are doing.
+Cores follow the work: once fewer tasks are left than worker processes, the running ones share the
+idle workers' cores (affinity and every pool resized by
+:func:`~vgpnav_env.perception.backbones.threads.configure_threads`), picked up when a task starts
+and at each :func:`note`; a new map starts from the even shares again. Thread counts do not change
+results.
 
 Identical results: a task's result may depend only on ``setup`` and its ``item`` -- seeds are
 part of the items (episode seeds, per-frame seeds), never a random stream shared across tasks.
@@ -60,7 +65,7 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
-from vgpnav_env.perception.backbones.threads import available_cores, configure_threads
+from vgpnav_env.perception.backbones.threads import available_cores, configure_threads, cpu_share
 
 logger = logging.getLogger(__name__)
 
@@ -83,6 +88,9 @@ _NOTES: Callable[[tuple[int, str | None]], None] | None = None
 NOTE_POLL_S = 0.5
 #: The process whose thread pools :func:`_run` sized (a Ray worker's).
 _THREADS_PID = -1
+#: A worker process's cores: (all the pool's cores, its own even share, the shared Value holding
+#: how many cores each running task may use now); None outside worker processes.
+_CORES: tuple[tuple[int, ...], tuple[int, ...], Any] | None = None
 
 
 def note(text: str) -> None:
@@ -90,6 +98,27 @@ def note(text: str) -> None:
     (a no-op outside one, and on Ray)."""
     if _NOTES is not None:
         _NOTES((os.getpid(), text))
+    _follow_share()
+
+
+def running_share(cores: int, workers: int, left: int) -> int:
+    """Cores each of ``left`` unfinished tasks may use on ``workers`` processes over ``cores`` cores:
+    the even share while every worker has a task, the idle workers' cores spread over the running
+    tasks once fewer are left."""
+    even = max(1, cores // workers)
+    return max(even, cores // left) if 0 < left < workers else even
+
+
+def _follow_share() -> None:
+    """In a worker process: take the share the pool's owner set (module docstring), if it changed."""
+    if _CORES is None:
+        return
+    cores, own, shared = _CORES
+    share = min(int(shared.value), len(cores))
+    if share == cpu_share():
+        return
+    os.sched_setaffinity(0, own if share <= len(own) else cores)
+    configure_threads(threads=share)
 
 
 def default_workers() -> int:
@@ -121,6 +150,7 @@ def _run(key: str, setup: Setup, task: Task, item: Any, threads: int | None = No
     if threads is not None and _THREADS_PID != os.getpid():
         configure_threads(threads=threads)
         _THREADS_PID = os.getpid()
+    _follow_share()
     cpu = time.process_time()
     try:
         result = task(_state(key, setup), item)
@@ -130,18 +160,24 @@ def _run(key: str, setup: Setup, task: Task, item: Any, threads: int | None = No
     return result, time.process_time() - cpu
 
 
-def _init_worker(notes: Any, counter: Any, workers: int, cores: tuple[int, ...] | None) -> None:
+def _init_worker(
+    notes: Any, counter: Any, workers: int, cores: tuple[int, ...] | None, share: Any = None
+) -> None:
     """Worker process initializer: send notes to ``notes`` (a queue) and, given ``cores``, run on
     the ``i``-th share of them (``i`` counts started workers), so that N single-share workers do not
-    each start thread pools over every core."""
-    global _NOTES
+    each start thread pools over every core; ``share`` (a shared Value) says how many cores a
+    running task may use once others are idle (module docstring)."""
+    global _NOTES, _CORES
     _NOTES = notes.put
     if cores is not None:
         with counter.get_lock():
             i = counter.value
             counter.value += 1
         n = min(workers, len(cores))
-        os.sched_setaffinity(0, cores[i % n :: n])
+        own = cores[i % n :: n]
+        os.sched_setaffinity(0, own)
+        if share is not None:
+            _CORES = (cores, own, share)
     configure_threads()
 
 
@@ -186,6 +222,7 @@ class Workers:
         self.cpu_seconds = 0.0
         self._pool: ProcessPoolExecutor | None = None
         self._notes: Any = None  # the worker processes' note queue
+        self._share: Any = None  # cores per running task (module docstring)
         self._ray: Any = None
         self._ray_started = False
         self._local: tuple[str, Any] | None = None
@@ -211,7 +248,7 @@ class Workers:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
             self._notes.close()
-            self._notes = None
+            self._notes = self._share = None
         if self._ray_started:
             self._ray.shutdown()
             self._ray_started = False
@@ -289,10 +326,13 @@ class Workers:
             context = get_context("spawn")
             cores = tuple(sorted(os.sched_getaffinity(0))) if hasattr(os, "sched_setaffinity") else None
             self._notes = context.Queue()
-            init = (self._notes, context.Value("i", 0), self.workers, cores)
+            self._share = context.Value("i", 1)
+            init = (self._notes, context.Value("i", 0), self.workers, cores, self._share)
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=context, initializer=_init_worker, initargs=init
             )
+        n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else self.workers
+        self._share.value = running_share(n_cores, self.workers, len(items))
         futures: dict[Future, int] = {
             self._pool.submit(_run, key, setup, task, x): i for i, x in enumerate(items)
         }
@@ -302,6 +342,7 @@ class Workers:
         try:
             while pending:
                 finished, pending = wait(pending, timeout=NOTE_POLL_S, return_when=FIRST_COMPLETED)
+                self._share.value = running_share(n_cores, self.workers, len(pending))
                 for pid, text in _drain(self._notes):
                     _show_notes(bar, shown, pid, text)
                 for future in finished:

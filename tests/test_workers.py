@@ -22,6 +22,7 @@ from worker_tasks import (
     failing_task,
     noting_task,
     ordered_task,
+    share_task,
     tagged_task,
     threads_task,
 )
@@ -49,11 +50,16 @@ def test_results_in_item_order_and_one_state_per_worker(n: int) -> None:
 def test_each_worker_runs_on_its_share_of_the_cores() -> None:
     cores = sorted(os.sched_getaffinity(0))
     with Workers(2, progress=False) as workers:
-        seen = dict(workers.map(CountingSetup("a"), affinity_task, list(range(8))))
-    shares = [set(s) for s in seen.values()]
+        seen = workers.map(CountingSetup("a"), affinity_task, list(range(8)))
+    # The last task may start once the other worker is idle, and then runs on every core.
+    shares = [set(s) for _, s in seen]
+    even = [s for s in shares if len(s) < len(cores)] if len(cores) >= 2 else shares
+    assert len(even) >= len(shares) - 1
     assert all(s <= set(cores) and len(s) >= len(cores) // 2 for s in shares)
-    if len(cores) >= 2 and len(shares) == 2:  # disjoint halves: no core runs two workers' thread pools
-        assert not shares[0] & shares[1] and shares[0] | shares[1] == set(cores)
+    by_pid = {pid: set(s) for pid, s in seen if len(s) < len(cores)}
+    if len(cores) >= 2 and len(by_pid) == 2:  # disjoint halves: no core runs two workers' thread pools
+        a, b = by_pid.values()
+        assert not a & b and a | b == set(cores)
     assert sorted(os.sched_getaffinity(0)) == cores  # this process keeps all of them
 
 
@@ -62,13 +68,39 @@ def test_each_worker_sizes_its_thread_pools_to_its_share() -> None:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     with Workers(2, progress=False) as workers:
         reports = workers.map(CountingSetup("a"), threads_task, list(range(6)))
+    even = [r for r in reports if r["share"] == max(1, cores // 2)]
+    assert len(even) >= len(reports) - 1  # the last task may take the idle worker's cores
     for r in reports:
-        assert r["share"] == r["backbone_pool"] == max(1, cores // 2) and r["opencv"] == 1
+        assert r["share"] == r["backbone_pool"] and r["opencv"] == 1
         assert r["environment"]["OMP_WAIT_POLICY"] == "PASSIVE"
         assert r["environment"]["OMP_NUM_THREADS"] == str(r["share"])
         assert r["environment"]["OPENBLAS_NUM_THREADS"] == "1"
         if isinstance(r["native"], dict):  # threadpoolctl installed: every loaded BLAS / OpenMP pool
             assert all(n == (1 if _is_blas(k) else r["share"]) for k, n in r["native"].items()), r["native"]
+
+
+@pytest.mark.skipif(
+    not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2, reason="needs 2 cores"
+)
+def test_a_task_running_alone_takes_the_idle_workers_cores() -> None:
+    """Fewer tasks than workers: the running ones share every core; the next map starts even."""
+    cores = sorted(os.sched_getaffinity(0))
+    with Workers(2, progress=False) as workers:
+        workers.map(CountingSetup("a"), share_task, [0, 1])  # starts the worker processes
+        alone = workers.map(CountingSetup("a"), share_task, [2])[0]
+        after = workers.map(CountingSetup("a"), share_task, [3, 4, 5, 6])
+    assert alone["share"] == alone["backbone_pool"] == len(cores) and alone["affinity"] == cores
+    assert alone["environment"]["OMP_NUM_THREADS"] == str(len(cores))
+    assert after[0]["share"] == len(cores) // 2 and len(after[0]["affinity"]) == len(cores) // 2
+    assert sum(r["share"] == len(cores) // 2 for r in after) >= 3
+
+
+def test_running_share() -> None:
+    from vgpnav_env.eval.workers import running_share
+
+    assert [running_share(2, 2, left) for left in (5, 2, 1, 0)] == [1, 1, 2, 1]
+    assert [running_share(8, 4, left) for left in (4, 3, 2, 1)] == [2, 2, 4, 8]
+    assert running_share(2, 4, 1) == 2 and running_share(2, 4, 3) == 1
 
 
 def _is_blas(pool: str) -> bool:

@@ -45,6 +45,15 @@ def threads_task(state: dict, item: int) -> dict:
     return {"pid": os.getpid(), **thread_report()}
 
 
+def share_task(state: dict, item: int) -> dict:
+    """The worker's cores and pool sizes after a note, the point where a task takes a new share."""
+    from vgpnav_env.eval.workers import note
+    from vgpnav_env.perception.backbones.threads import thread_report
+
+    note(f"item {item}")
+    return {"affinity": sorted(os.sched_getaffinity(0)), **thread_report()}
+
+
 def ordered_task(state: dict, item: int) -> tuple[int, int, int]:
     """(item, pid, how many tasks this worker ran before it): the order tasks started in."""
     started = state.setdefault("started", [])
