@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose
+from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, make_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
 from vgpnav_env.perception.recovery import (
@@ -353,6 +353,18 @@ def test_epipolar_support_counts_the_matches_a_pose_explains() -> None:
     assert (epipolar_support(turned, T_wi, out.matches, CAMERA, 2.0) < 0.2 * out.n_matches).all()
     with pytest.raises(ValueError, match="match arrays"):
         epipolar_support(T_a, T_wi[:2], out.matches, CAMERA, 2.0)
+
+
+def test_epipolar_support_of_stacked_poses_equals_one_pose_at_a_time() -> None:
+    """A grid of poses (a prior placement's search), a pure rotation among them: the same counts."""
+    T_a, _, T_wi, out = _aliased_frame("A")
+    poses = [camera_pose(T_a[:3, 3] + [dx, dy, 0.0], np.deg2rad(45.0 + yaw), np.deg2rad(20.0))
+             for dx in (-0.2, 0.0, 0.1) for dy in (-0.1, 0.0) for yaw in (0.0, 3.0)]  # fmt: skip
+    poses.append(T_wi[0] @ make_pose(Rotation.from_euler("y", 10, degrees=True), [0.0, 0.0, 0.0]))
+    stacked = epipolar_support(np.stack(poses), T_wi, out.matches, CAMERA, 2.0)
+    one_by_one = np.stack([epipolar_support(T, T_wi, out.matches, CAMERA, 2.0) for T in poses])
+    assert stacked.shape == (len(poses), len(T_wi)) and (stacked == one_by_one).all()
+    assert stacked.max() >= 0.95 * out.n_matches.max()  # not all zero: the true pose is in the grid
 
 
 def _wallpaper_frame():

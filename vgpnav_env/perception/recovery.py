@@ -492,8 +492,9 @@ def prior_poses(
     def best(R: NDArray[np.float64], centre: NDArray[np.float64], grid: NDArray[np.float64]):
         poses = [make_pose(R, np.r_[centre + o, camera_z]) for o in grid]
         poses = [T for T in poses if prior.admits(T)]
-        scores = [int(reference_support(T, pairs).sum()) for T in poses]
-        return poses[int(np.argmax(scores))] if poses else None
+        if not poses:
+            return None
+        return poses[int(np.argmax(reference_support(np.stack(poses), pairs).sum(axis=1)))]
 
     hypotheses: list[NDArray[np.float64]] = []
     for i in np.argsort(-out.confidence, kind="stable"):

@@ -424,7 +424,7 @@ def _pitch_and_rest(R: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArra
     return pitch.reshape(shape), rest.reshape(shape)
 
 
-def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+def cross3(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """``np.cross`` of 3-vectors along the last axis (broadcast), the same products and differences
     without its per-call axis handling (these run thousands of times per frame on short arrays)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
@@ -440,8 +440,8 @@ def sampson_distance(
     nonzero length of ``t``); nan where undefined. ``R`` (..., 3, 3) and ``t`` (..., 3) may stack
     several poses: the distances are then (..., n), one row per pose."""
     t = np.asarray(t)[..., None, :]
-    Ex_q = _cross(t, x_q @ np.swapaxes(R, -1, -2))
-    Etx_r = _cross(x_r, t) @ R
+    Ex_q = cross3(t, x_q @ np.swapaxes(R, -1, -2))
+    Etx_r = cross3(x_r, t) @ R
     num = np.einsum("...ij,...ij->...i", x_r, Ex_q)
     den = Ex_q[..., 0] ** 2 + Ex_q[..., 1] ** 2 + Etx_r[..., 0] ** 2 + Etx_r[..., 1] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -528,8 +528,8 @@ def triangulate_query_depth(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Query z-depth, parallax (radians) and cheirality of normalised rays (n, 3), ``x_r ~ R x_q d + t``."""
     Rx = x_q @ R.T
-    a = _cross(x_r, Rx)
-    b = _cross(x_r, np.broadcast_to(t, x_r.shape))
+    a = cross3(x_r, Rx)
+    b = cross3(x_r, np.broadcast_to(t, x_r.shape))
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = -np.einsum("ij,ij->i", a, b) / np.einsum("ij,ij->i", a, a)
     X = x_q * depth[:, None]

@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose, rotation_angle
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.backbones.classical import (
+    cross3,
     dominant_plane,
     sampson_distance,
     triangulate_query_depth,
@@ -60,31 +61,64 @@ def epipolar_support(
     in front of both cameras; a reference at the query's centre (under 1 mm) is a pure rotation
     and its matches are checked by reprojection. This
     uses nothing of how the pose was found (retrieval, motion averaging), so it checks any pose
-    hypothesis against any references the query was matched with.
+    hypothesis against any references the query was matched with. ``T_wq`` may stack P poses
+    (P, 4, 4): the counts are then (P, k), one row per pose.
     """
+    T_wq = np.asarray(T_wq, float)
+    stacked = T_wq.ndim == 3
+    T_wq = T_wq.reshape(-1, 4, 4)
     T_wi = np.asarray(T_wi, float).reshape(-1, 4, 4)
     if len(matches) != len(T_wi):
         raise ValueError(f"got {len(matches)} match arrays for {len(T_wi)} reference poses")
     K_inv = np.linalg.inv(camera.K)
     f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
-    out = np.zeros(len(T_wi), np.int64)
+    out = np.zeros((len(T_wq), len(T_wi)), np.int64)
     for i, (T, m) in enumerate(zip(T_wi, matches, strict=True)):
         m = np.asarray(m, float).reshape(-1, 4)
         if len(m) == 0:
             continue
-        T_iq = invert_pose(T) @ T_wq
-        R, t = T_iq[:3, :3], T_iq[:3, 3]
         x_q = np.c_[m[:, :2], np.ones(len(m))] @ K_inv.T
         x_i = np.c_[m[:, 2:], np.ones(len(m))] @ K_inv.T
-        Rx = x_q @ R.T
-        if np.linalg.norm(t) < 1e-3:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err = f * np.linalg.norm(Rx[:, :2] / Rx[:, 2:3] - x_i[:, :2], axis=1)
+        if len(T_wq) == 1:
+            err = f * _pose_errors(invert_pose(T) @ T_wq[0], x_q, x_i)[None]
         else:
-            err = f * sampson_distance(x_q, x_i, R, t)
-            err[~triangulate_query_depth(x_q, x_i, R, t)[2]] = np.inf
-        out[i] = int(np.count_nonzero(np.nan_to_num(err, nan=np.inf) < max_error_px))
-    return out
+            err = f * _pose_errors_many(invert_pose(T) @ T_wq, x_q, x_i)
+        out[:, i] = np.count_nonzero(np.nan_to_num(err, nan=np.inf) < max_error_px, axis=1)
+    return out if stacked else out[0]
+
+
+def _pose_errors(
+    T_iq: NDArray[np.float64], x_q: NDArray[np.float64], x_i: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(m,) errors (normalised units) of normalised ray pairs (m, 3) under one relative pose
+    ``T_iq``: Sampson distance, inf behind a camera; reprojection for a pure rotation."""
+    R, t = T_iq[:3, :3], T_iq[:3, 3]
+    if np.linalg.norm(t) < 1e-3:
+        Rx = x_q @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.linalg.norm(Rx[:, :2] / Rx[:, 2:3] - x_i[:, :2], axis=1)
+    err = sampson_distance(x_q, x_i, R, t)
+    err[~triangulate_query_depth(x_q, x_i, R, t)[2]] = np.inf
+    return err
+
+
+def _pose_errors_many(
+    T_iq: NDArray[np.float64], x_q: NDArray[np.float64], x_i: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(P, m) :func:`_pose_errors` of P relative poses ``T_iq`` (P, 4, 4) at once."""
+    R, t = T_iq[:, :3, :3], T_iq[:, :3, 3]
+    err = sampson_distance(x_q, x_i, R, t)
+    Rx = x_q @ np.swapaxes(R, -1, -2)  # cheirality as in triangulate_query_depth, per pose
+    a = cross3(x_i, Rx)
+    b = cross3(x_i, t[:, None, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = -np.einsum("pij,pij->pi", a, b) / np.einsum("pij,pij->pi", a, a)
+    z_i = np.einsum("pij,pj->pi", x_q * depth[..., None], R[:, 2, :]) + t[:, 2:3]
+    err[~(np.isfinite(depth) & (depth > 0) & (z_i > 0))] = np.inf
+    still = np.linalg.norm(t, axis=1) < 1e-3
+    for p in np.flatnonzero(still):
+        err[p] = _pose_errors(T_iq[p], x_q, x_i)
+    return err
 
 
 def off_plane_matches(out: BackboneOutput, threshold_px: float) -> BackboneOutput:
@@ -107,10 +141,13 @@ def reference_support(T_wq: NDArray[np.float64], pairs: Pairs) -> NDArray[np.int
     """(k,) matches of each reference that the pose ``T_wq`` explains: :func:`epipolar_support` of
     the backbone's ``matches``; a backbone without matches (``matches`` None) counts a pair's
     ``n_matches`` when its own relative pose agrees with ``T_wq`` (rotation and direction of the
-    query centre seen from the reference within ``rival_angle_deg``), else 0."""
+    query centre seen from the reference within ``rival_angle_deg``), else 0. ``T_wq`` may stack
+    P poses (P, 4, 4): (P, k), one row per pose."""
     T_wi, out, config = pairs.T_wi, pairs.out, pairs.config
     if out.matches is not None:
         return epipolar_support(T_wq, T_wi, out.matches, pairs.camera, config.max_epipolar_error_px)
+    if np.ndim(T_wq) == 3:
+        return np.stack([reference_support(T, pairs) for T in T_wq]).reshape(len(T_wq), len(T_wi))
     T_iq_pose = invert_pose(T_wi) @ T_wq
     T_iq = out.T_iq
     limit = np.deg2rad(config.rival_angle_deg)
