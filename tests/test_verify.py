@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, make_pose
 from vgpnav_env.perception.backbones.base import BackboneOutput
+from vgpnav_env.perception.backbones.classical import in_front_of_both, triangulate_query_depth
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, average_motion
 from vgpnav_env.perception.recovery import (
     RecoveryConfig,
@@ -365,6 +366,14 @@ def test_epipolar_support_of_stacked_poses_equals_one_pose_at_a_time() -> None:
     one_by_one = np.stack([epipolar_support(T, T_wi, out.matches, CAMERA, 2.0) for T in poses])
     assert stacked.shape == (len(poses), len(T_wi)) and (stacked == one_by_one).all()
     assert stacked.max() >= 0.95 * out.n_matches.max()  # not all zero: the true pose is in the grid
+    m = np.asarray(out.matches[1], float)
+    K_inv = np.linalg.inv(CAMERA.K)
+    x_q, x_r = np.c_[m[:, :2], np.ones(len(m))] @ K_inv.T, np.c_[m[:, 2:], np.ones(len(m))] @ K_inv.T
+    behind = camera_pose(T_a[:3, 3], np.deg2rad(225.0), np.deg2rad(20.0))  # faces away
+    T_iq = invert_pose(T_wi[1]) @ np.stack([*poses, behind])
+    front = in_front_of_both(x_q, x_r, T_iq[:, :3, :3], T_iq[:, :3, 3])
+    each = [triangulate_query_depth(x_q, x_r, T[:3, :3], T[:3, 3])[2] for T in T_iq]
+    assert (front == np.stack(each)).all() and front.any() and not front.all()
 
 
 def _wallpaper_frame():

@@ -542,6 +542,20 @@ def triangulate_query_depth(
     return depth, parallax, valid
 
 
+def in_front_of_both(
+    x_q: NDArray[np.float64], x_r: NDArray[np.float64], R: NDArray[np.float64], t: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """(P, n) cheirality of normalised rays (n, 3) under P relative poses ``x_r ~ R x_q d + t``
+    (``R`` (P, 3, 3), ``t`` (P, 3)): :func:`triangulate_query_depth`'s ``valid`` for each pose at
+    once (the same depth and reference-frame z, without the parallax)."""
+    a = cross3(x_r, x_q @ np.swapaxes(R, -1, -2))
+    b = cross3(x_r, t[:, None, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = -np.einsum("pij,pij->pi", a, b) / np.einsum("pij,pij->pi", a, a)
+    z_r = np.einsum("pij,pj->pi", x_q * depth[..., None], R[:, 2, :]) + t[:, 2:3]
+    return np.isfinite(depth) & (depth > 0) & (z_r > 0)
+
+
 def link_scales(
     pairs: list[PairGeometry | None], min_common: int, max_spread: float = 0.05
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:

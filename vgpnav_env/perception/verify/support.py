@@ -19,8 +19,8 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose, rotation_angle
 from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.backbones.classical import (
-    cross3,
     dominant_plane,
+    in_front_of_both,
     sampson_distance,
     triangulate_query_depth,
 )
@@ -108,13 +108,7 @@ def _pose_errors_many(
     """(P, m) :func:`_pose_errors` of P relative poses ``T_iq`` (P, 4, 4) at once."""
     R, t = T_iq[:, :3, :3], T_iq[:, :3, 3]
     err = sampson_distance(x_q, x_i, R, t)
-    Rx = x_q @ np.swapaxes(R, -1, -2)  # cheirality as in triangulate_query_depth, per pose
-    a = cross3(x_i, Rx)
-    b = cross3(x_i, t[:, None, :])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = -np.einsum("pij,pij->pi", a, b) / np.einsum("pij,pij->pi", a, a)
-    z_i = np.einsum("pij,pj->pi", x_q * depth[..., None], R[:, 2, :]) + t[:, 2:3]
-    err[~(np.isfinite(depth) & (depth > 0) & (z_i > 0))] = np.inf
+    err[~in_front_of_both(x_q, x_i, R, t)] = np.inf
     still = np.linalg.norm(t, axis=1) < 1e-3
     for p in np.flatnonzero(still):
         err[p] = _pose_errors(T_iq[p], x_q, x_i)
