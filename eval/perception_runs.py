@@ -543,8 +543,10 @@ def _temporal_task(
     (:attr:`~vgpnav_env.perception.pipeline.PerceptionResult.measurement`) with their verifier
     confidence, as the env's wrapper does (one fix scoring ``EKFConfig.init_score`` starts the first
     estimate alone, instead of waiting for a second fix from another view). The ground is anchored
-    on the first frame standing still, as in paper mode. A record's ``cpu`` timing
-    includes the odometry's (``odometry_cpu``)."""
+    on the first frame standing still, as in paper mode. The frames it then trusts become sweep
+    references of the frames after them (:attr:`~vgpnav_env.perception.pipeline.Perceiver.recent`),
+    as the wrapper's mapped frames do. A record's ``cpu`` timing includes the odometry's
+    (``odometry_cpu``)."""
     config, frames, max_depth, max_points, visual_odometry = item
     query = state.build.query
     T0 = query.poses[frames[0]]
@@ -578,6 +580,8 @@ def _temporal_task(
         frame = state.perceive(perceiver, i, max_depth, max_points, predicted=T_pred, prior=ekf.prior())
         measured = frame.result.measurement
         ekf.correct(None if measured is None else base_pose(measured), frame.result.confidence)
+        if ekf.localized and frame.result.localized and not frame.result.prior_placed:
+            perceiver.recent.add(query.images[i], frame.result.T_wc)  # a trusted frame: a sweep reference
         error = float(np.linalg.norm(ekf.estimate[:2] - truth[n, :2])) if ekf.has_estimate else float("nan")
         timings = frame.record.timings | {"cpu": frame.record.timings["cpu"] + vo_cpu, "odometry_cpu": vo_cpu}
         record = replace(

@@ -748,3 +748,33 @@ def test_a_pose_the_rays_place_stands_without_a_scale_and_maps_nothing(
     one.anchor = perceiver.anchor
     lost = one.perceive(run.images[i], priv)
     assert lost.status == "lost" and lost.reason == "no ground", lost.detail
+
+
+def test_a_trusted_frame_becomes_a_reference_of_the_next_frames_map_sweep(
+    database: Database, query, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Query frames 1 and 4 are 0.15-2 m apart and look the same way. Fused with its RGB (the caller
+    trusts its pose), frame 1 joins the recent frames and is swept against when frame 4's depth is
+    swept again; a frame fused by ``perceive`` itself (paper mode) does not join; reset forgets."""
+    import vgpnav_env.perception.pipeline as pipeline_module
+
+    run, _ = query
+    swept: list[list[np.ndarray]] = []
+    original = pipeline_module.posed_depth
+
+    def recording(rgb, references, *args, **kwargs):
+        swept.append(references)
+        return original(rgb, references, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline_module, "posed_depth", recording)
+    perceiver = Perceiver(database, "classical", config=PerceptionConfig.ablation(camera_height=QUERY_HEIGHT))
+    image = run.images[1]
+    first = perceiver.perceive(image, fuse=False)
+    assert first.localized and len(perceiver.recent) == 0
+    perceiver.fuse(first, image)
+    assert len(perceiver.recent) == 1 and not any(np.array_equal(ref, image) for ref in swept[0])
+    later = perceiver.perceive(run.images[4])
+    assert later.localized and any(np.array_equal(ref, image) for ref in swept[1])
+    assert len(swept[1]) == perceiver.config.depth.references and len(perceiver.recent) == 1
+    perceiver.reset()
+    assert len(perceiver.recent) == 0

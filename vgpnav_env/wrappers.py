@@ -342,7 +342,7 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         localized = self.pose_state.localized
         if localized and not first and self.perception_mode != "paper" and not result.prior_placed:
             # the map takes only frames whose pose the estimator trusts and the images confirm alone
-            self.perceiver.fuse(result)
+            self.perceiver.fuse(result, obs["rgb"])
         estimate = self.pose_state.estimate
         self.last_result = result
         occupancy = self.perceiver.map

@@ -52,7 +52,7 @@ from vgpnav_env.perception.motion_averaging import (
 )
 from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
 from vgpnav_env.perception.points import depth_points
-from vgpnav_env.perception.posed_depth import PosedDepthConfig, posed_depth, posed_references
+from vgpnav_env.perception.posed_depth import PosedDepthConfig, RecentFrames, posed_depth, posed_references
 from vgpnav_env.perception.recovery import (
     RECOVERY,
     Attempt,
@@ -344,6 +344,7 @@ class Perceiver:
         self._floor_votes: list[NDArray[np.float64]] = []
         self._map_floor_refuted = False
         self._anchored_by: list[NDArray[np.float64]] = []  # the poses that set an unconfirmed anchor
+        self.recent = RecentFrames(self.config.depth.recent_frames)
 
     @property
     def initialized(self) -> bool:
@@ -440,15 +441,16 @@ class Perceiver:
             return None
         db, T_wc, occ = self.database, result.T_wc, self.config.occupancy
         own = result.references[net.select_sweep_references(out.confidence, out.scale_valid, out.T_iq)]
-        refs = posed_references(T_wc, db.poses, own, points_w, self.camera, cfg)
-        if len(refs) == 0:
+        live, T_live = self.recent.select(T_wc, points_w, self.camera, cfg)
+        refs = posed_references(T_wc, db.poses, own, points_w, self.camera, cfg, cfg.references - len(live))
+        if len(refs) + len(live) == 0:
             return None
         depths = ((points_w - T_wc[:3, 3]) @ T_wc[:3, :3])[:, 2]
         sweep: dict[str, float] = {}
         with clock.stage("occupancy.posed_depth"):
             depth, confidence = posed_depth(
-                rgb, [db.images[i] for i in refs], db.poses[refs], T_wc, self.camera, depths,
-                cfg.sweep, threads=net.config.threads, timings=sweep,
+                rgb, [*live, *(db.images[i] for i in refs)], np.concatenate([T_live, db.poses[refs]]), T_wc,
+                self.camera, depths, cfg.sweep, threads=net.config.threads, timings=sweep,
             )  # fmt: skip
         # The completion apart from the sweep proper.
         clock.add(
@@ -469,8 +471,12 @@ class Perceiver:
         )
         return transform_points(T_wc, points_q)
 
-    def fuse(self, result: PerceptionResult) -> PointClasses:
-        """Fuse a localized frame's metric points into :attr:`map` (stage 5); their classes."""
+    def fuse(self, result: PerceptionResult, rgb: NDArray[np.uint8] | None = None) -> PointClasses:
+        """Fuse a localized frame's metric points into :attr:`map` (stage 5); their classes. With
+        the frame's ``rgb``, the frame, whose pose the caller trusts, joins :attr:`recent`: a
+        reference of the map's sweep for the frames after it."""
+        if rgb is not None:
+            self.recent.add(rgb, result.T_wc)
         return self._fuse(result, result.points_w.astype(np.float64))
 
     def _fuse(self, result: PerceptionResult, points_w: NDArray[np.float64]) -> PointClasses:

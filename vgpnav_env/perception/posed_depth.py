@@ -7,17 +7,21 @@ pairs has one or two sweep references. Once the pose ``T_wc`` is localized and v
 relative pose of EVERY database camera is known metrically (``T_iq = T_wi^-1 T_wc``), so the
 depth is swept again:
 
-- references: the backbone's own sweep references (two-view pairs that passed), then the database
-  cameras (:func:`~vgpnav_env.perception.retrieval.nearby_cameras`, ``radius`` metres and
-  ``max_angle_deg``, at least ``min_baseline`` metres away) that see most of the frame's first
-  points (``points_w``: the fraction of them that project inside the camera, minus
-  ``distance_weight`` per metre of baseline), up to ``references``;
+- references: up to ``live_references`` of the sequence's recent mapped frames
+  (:class:`RecentFrames`: they see the layout as it is now, where the database's images may still
+  show furniture since moved), then the backbone's own sweep references (two-view pairs that
+  passed), then the database cameras, up to ``references`` in all; the frames and cameras
+  considered lie within ``radius`` metres and ``max_angle_deg``, at least ``min_baseline`` metres
+  away (:func:`~vgpnav_env.perception.retrieval.nearby_cameras`), ranked by how much of the frame's
+  first points (``points_w``) they see (the fraction that projects inside their image, minus
+  ``distance_weight`` per metre of baseline);
 - depth range: the first points' depths (metres);
 - output: a METRIC query z-depth (H, W) and its confidence, no scale left to recover.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,9 +35,10 @@ from vgpnav_env.perception.retrieval import nearby_cameras
 @dataclass(frozen=True)
 class PosedDepthConfig:
     """The re-sweep after localization (module docstring); ``enabled`` False keeps the backbone's
-    depth. ``sample_stride``: every that many of the first points score the overlap. ``sweep``: the
-    plane sweep's settings (the map's depth; the backbone's own sweep, which serves the ground
-    peak, has its own in :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig`)."""
+    depth. ``sample_stride``: every that many of the first points score the overlap.
+    ``recent_frames``: how many of the sequence's last mapped frames :class:`RecentFrames` keeps.
+    ``sweep``: the plane sweep's settings (the map's depth; the backbone's own sweep, which serves
+    the ground peak, has its own in :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig`)."""
 
     enabled: bool = True
     references: int = 5
@@ -42,13 +47,42 @@ class PosedDepthConfig:
     min_baseline: float = 0.15
     distance_weight: float = 0.1
     sample_stride: int = 7
+    live_references: int = 2
+    recent_frames: int = 12
     sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def __post_init__(self) -> None:
         if self.references < 1 or self.sample_stride < 1:
             raise ValueError(f"references and sample_stride must be >= 1, got {self}")
+        if not 0 <= self.live_references < self.references or self.recent_frames < 0:
+            raise ValueError(f"need 0 <= live_references < references and recent_frames >= 0, got {self}")
         if self.radius <= self.min_baseline or self.min_baseline < 0 or not 0 < self.max_angle_deg <= 180:
             raise ValueError(f"need 0 <= min_baseline < radius and max_angle_deg in (0, 180], got {self}")
+
+
+def _by_overlap(
+    T_w: NDArray[np.float64],
+    T_wc: NDArray[np.float64],
+    points_w: NDArray[np.float64],
+    camera: PinholeCamera,
+    config: PosedDepthConfig,
+) -> NDArray[np.int64]:
+    """Indices of the cameras ``T_w`` (M, 4, 4) near ``T_wc`` (:func:`nearby_cameras` with the
+    config's radius, angle and baseline), best first by the fraction of every ``sample_stride``-th
+    of ``points_w`` (N, 3, W) inside their image minus ``distance_weight`` x baseline."""
+    cfg = config
+    near = nearby_cameras(T_w, T_wc, cfg.radius, cfg.max_angle_deg, min_distance=cfg.min_baseline).index
+    sample = np.asarray(points_w, float)[:: cfg.sample_stride]
+    if len(near) == 0 or len(sample) == 0:
+        return near[:0]
+    T_iw = invert_pose(T_w[near])
+    P = np.einsum("mij,nj->mni", T_iw[:, :3, :3], sample) + T_iw[:, None, :3, 3]
+    uv, z = camera.project(P)
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
+    inside &= (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1)
+    distance = np.linalg.norm(T_w[near, :3, 3] - T_wc[:3, 3], axis=1)
+    score = inside.mean(axis=1) - cfg.distance_weight * distance
+    return near[np.argsort(-score, kind="stable")]
 
 
 def posed_references(
@@ -58,27 +92,47 @@ def posed_references(
     points_w: NDArray[np.float64],
     camera: PinholeCamera,
     config: PosedDepthConfig,
+    count: int | None = None,
 ) -> NDArray[np.int64]:
-    """Database indices to sweep a query at ``T_wc`` against: ``fixed`` first (at most
-    ``config.references``), then the cameras of ``T_w`` (M, 4, 4) near ``T_wc`` ranked by the
-    fraction of ``points_w`` (N, 3, W) inside their image minus ``distance_weight`` x baseline."""
-    cfg = config
-    picked = [int(i) for i in fixed][: cfg.references]
-    near = nearby_cameras(T_w, T_wc, cfg.radius, cfg.max_angle_deg, min_distance=cfg.min_baseline)
-    candidates = np.setdiff1d(near.index, picked)
-    sample = np.asarray(points_w, float)[:: cfg.sample_stride]
-    if len(picked) >= cfg.references or len(candidates) == 0 or len(sample) == 0:
-        return np.array(picked, np.int64)
-    T_iw = invert_pose(T_w[candidates])
-    P = np.einsum("mij,nj->mni", T_iw[:, :3, :3], sample) + T_iw[:, None, :3, 3]
-    uv, z = camera.project(P)
-    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
-    inside &= (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1)
-    distance = np.linalg.norm(T_w[candidates, :3, 3] - T_wc[:3, 3], axis=1)
-    score = inside.mean(axis=1) - cfg.distance_weight * distance
-    ranked = candidates[np.argsort(-score, kind="stable")]
-    picked += [int(i) for i in ranked[: cfg.references - len(picked)]]
+    """Database indices to sweep a query at ``T_wc`` against: ``fixed`` first, then the cameras
+    of ``T_w`` (M, 4, 4) near ``T_wc`` (:func:`_by_overlap`), ``count`` in all (default
+    ``config.references``)."""
+    count = config.references if count is None else count
+    picked = [int(i) for i in fixed][:count]
+    if len(picked) < count:
+        ranked = [int(i) for i in _by_overlap(T_w, T_wc, points_w, camera, config) if i not in picked]
+        picked += ranked[: count - len(picked)]
     return np.array(picked, np.int64)
+
+
+class RecentFrames:
+    """The last ``size`` frames (RGB, camera pose ``T_wc`` in W) a sequence mapped: references of
+    the map's sweep that see the layout as it is now (module docstring)."""
+
+    def __init__(self, size: int) -> None:
+        self._frames: deque[tuple[NDArray[np.uint8], NDArray[np.float64]]] = deque(maxlen=size)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def add(self, rgb: NDArray[np.uint8], T_wc: NDArray[np.float64]) -> None:
+        if self._frames.maxlen:
+            self._frames.append((np.asarray(rgb), np.asarray(T_wc, float).copy()))
+
+    def select(
+        self,
+        T_wc: NDArray[np.float64],
+        points_w: NDArray[np.float64],
+        camera: PinholeCamera,
+        config: PosedDepthConfig,
+    ) -> tuple[list[NDArray[np.uint8]], NDArray[np.float64]]:
+        """Up to ``config.live_references`` frames to sweep a query at ``T_wc`` against
+        (:func:`_by_overlap`): their images and poses (k, 4, 4)."""
+        if not self._frames or config.live_references == 0:
+            return [], np.zeros((0, 4, 4))
+        T_w = np.stack([T for _, T in self._frames])
+        best = _by_overlap(T_w, T_wc, points_w, camera, config)[: config.live_references]
+        return [self._frames[i][0] for i in best], T_w[best]
 
 
 def posed_depth(
