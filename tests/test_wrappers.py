@@ -221,6 +221,7 @@ def test_motion_gate_rejects_a_pose_jump_until_it_persists(database, gate: bool)
     obs, _, _, _, info = env.step(2)  # turn left in place; perception says 1 m along +x
     if not gate:
         assert obs["localized"] == 1 and obs["pose"][0] == pytest.approx(start[0] + 1.0, abs=0.05)
+        assert len(env.perceiver.recent) == 0  # paper mode: no frame is another's sweep reference
         env.close()
         return
     assert obs["localized"] == 0 and info["perception"]["reason"] == "inconsistent motion"
@@ -310,6 +311,10 @@ def test_temporal_mode_tracks_a_known_trajectory(database):
 def test_temporal_mode_maps_only_poses_the_images_confirm_without_the_prior(database):
     env = temporal_env(database, FlakyBackbone())
     env.reset(options={"start": (5.0, 4.5, 0.0), "goal": (8.0, 4.5)})
+    # The reset's views are mapped and become sweep references of later frames; so do the mapped
+    # frames after them, not the ones the map does not take.
+    views = len(env.init_yaw_jitter)
+    assert views > 1 and len(env.perceiver.recent) == views
     confirmed = env.perceiver.config
     # A support floor no pose reaches: only the EKF's prior (which waives it) verifies the poses.
     env.perceiver.config = replace(confirmed, verify=replace(confirmed.verify, min_total_support=10**6))
@@ -320,9 +325,11 @@ def test_temporal_mode_maps_only_poses_the_images_confirm_without_the_prior(data
         assert result.localized and result.prior_placed and info["perception"]["fix"] == "accepted"
         assert info["localization_error_m"] < 0.05  # the estimate takes them in...
     np.testing.assert_array_equal(env.fused_map.logodds, before)  # ...the map does not
+    assert len(env.perceiver.recent) == views
     env.perceiver.config = confirmed
     env.step(TRAJECTORY[3])
     assert not env.last_result.prior_placed and not np.array_equal(env.fused_map.logodds, before)
+    assert len(env.perceiver.recent) == views + 1
     env.close()
 
 

@@ -302,6 +302,10 @@ class VGPNavObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             images.append(frame.rgb)
             privileged.append(self._privileged(base.camera_T_wc(view), frame.depth))
         results = self.perceiver.initialize(images, privileged)
+        if self.perception_mode != "paper":  # mapped views of a trusted start: sweep references
+            for image, result in zip(images, results, strict=True):
+                if result.localized:
+                    self.perceiver.recent.add(image, result.T_wc)
         self.pose_state.reset(obs["rgb"], fallback=(*self.perceiver.map.spec.centre, 0.0))
         for view, dyaw in zip(results[1:], self.init_yaw_jitter[1:], strict=True):
             # The robot stands still: each view's pose, its known yaw offset taken out, is a fix of
