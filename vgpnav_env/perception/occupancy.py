@@ -48,12 +48,6 @@ class OccupancyConfig:
     :attr:`~vgpnav_env.perception.database.DatabaseConfig.prior_clamp`: free evidence overrides
     it within a few frames where the layout changed; at 0.5 the walls' weaker prior cells fell
     under the occupied threshold and a robot starting beside a wall bumped into it).
-
-    ``min_confidence`` 0.2 (was 0.3), with the plane sweep's snapped planar inliers
-    (:class:`~vgpnav_env.perception.backbones.planar_fill.PlanarFillConfig`): on the right poses of
-    the default perception runs' frames (classical, 320x240, k = 10; sweep re-run offline at the
-    pipeline's pose and scale) home Acc / Comp 0.055 / 0.051 -> 0.054 / 0.047 m, hospital
-    0.051 / 0.041 -> 0.049 / 0.038 m; 0.1 gave Comp 0.045 at Acc 0.057 m on home.
     """
 
     free_tol: float = FLOOR_TOLERANCE
