@@ -133,8 +133,11 @@ def test_recent_frames_pick_the_ones_that_see_the_points():
     recent = RecentFrames(4)
     cfg = PosedDepthConfig(references=5, live_references=2)
     assert recent.select(T_wc, points_w, CAMERA, cfg)[0] == []
+    buffer = np.zeros((2, 2, 3), np.uint8)  # one image buffer, refilled: the frames keep copies
     for i, T in enumerate(poses):
-        recent.add(np.full((2, 2, 3), i, np.uint8), T)
+        buffer[:] = i
+        recent.add(buffer, T)
+    buffer[:] = 255
     images, T_live = recent.select(T_wc, points_w, CAMERA, cfg)
     assert len(recent) == 4 and [int(im[0, 0, 0]) for im in images] == [2, 4]
     np.testing.assert_allclose(T_live, np.stack([poses[2], poses[4]]))

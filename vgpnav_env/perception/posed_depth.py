@@ -116,8 +116,9 @@ class RecentFrames:
         return len(self._frames)
 
     def add(self, rgb: NDArray[np.uint8], T_wc: NDArray[np.float64]) -> None:
+        """Keep a copy of the frame (a caller may reuse its image buffer)."""
         if self._frames.maxlen:
-            self._frames.append((np.asarray(rgb), np.asarray(T_wc, float).copy()))
+            self._frames.append((np.array(rgb, np.uint8), np.array(T_wc, float)))
 
     def select(
         self,
