@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import threading
+import time
+
+import pytest
 
 from vgpnav_env.perception.backbones.threads import available_cores, resolve_threads, thread_map
 
@@ -32,3 +35,18 @@ def test_nested_calls_run_serially_inside_the_pool():
 def test_zero_threads_means_every_available_core():
     assert resolve_threads(0) == available_cores() >= 1
     assert resolve_threads(3) == 3
+
+
+def test_an_exception_propagates_after_every_call_finished():
+    finished = []
+
+    def work(x: int) -> int:
+        if x == 0:
+            raise OSError("disk full (simulated)")
+        time.sleep(0.2)
+        finished.append(x)
+        return x
+
+    with pytest.raises(OSError, match="simulated"):
+        thread_map(work, range(4), 2)
+    assert sorted(finished) == [1, 2, 3]  # nothing still running when the caller cleans up

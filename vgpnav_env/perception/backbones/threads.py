@@ -27,7 +27,7 @@ import os
 import sys
 import threading
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -155,9 +155,14 @@ def _mark_inside() -> None:
 
 
 def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int) -> list[R]:
-    """``[fn(x) for x in items]`` in order, on up to ``threads`` threads (<= 0: the process's share)."""
+    """``[fn(x) for x in items]`` in order, on up to ``threads`` threads (<= 0: the process's share).
+    If a call raises, the first exception (in item order) propagates only after every call has
+    finished, so no call still runs (e.g. writes into a directory the caller then deletes)."""
     items = list(items)
     n = min(resolve_threads(threads), len(items))
     if n <= 1 or getattr(_inside, "active", False):
         return [fn(x) for x in items]
-    return list(_get_pool(resolve_threads(threads)).map(fn, items))
+    pool = _get_pool(resolve_threads(threads))
+    futures = [pool.submit(fn, x) for x in items]
+    wait(futures)
+    return [f.result() for f in futures]
