@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from vgpnav_env.geometry import PinholeCamera, invert_pose, make_pose
 from vgpnav_env.perception.backbones.planar_fill import PlanarFillConfig, planar_fill
 from vgpnav_env.perception.backbones.stereo import SweepConfig, best_mean, plane_sweep, speckles
+from vgpnav_env.perception.posed_depth import PosedDepthConfig
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 
@@ -177,3 +178,32 @@ def test_planar_fill_completes_a_textureless_plane_but_not_a_curved_surface():
     )
     np.testing.assert_array_equal(kept_inv[confident], inv_depth[confident])
     np.testing.assert_array_equal(kept_inv[holes], filled_inv[holes])
+
+
+def test_planar_fill_leaves_an_object_merged_into_the_planes_segment_unfilled():
+    # A 160x120 view of one flat colour: a slanted plane with 15 % confident pixels, and in it a
+    # 40x40 px object of the same colour standing 30 % nearer (its 15 % confident pixels say so).
+    # The segment's plane is well supported, but the map's sweep does not fill the object's pixels
+    # with it; with the local test off (the default) they are filled (the floor painted over a box
+    # on a carpet of its colour).
+    h, w = 120, 160
+    rng = np.random.default_rng(2)
+    v, u = np.indices((h, w), dtype=np.float64)
+    image = np.full((h, w, 3), (120, 110, 100), np.uint8)
+    plane = 0.4 + 0.002 * u + 0.001 * v
+    box = (np.abs(u - 80) < 20) & (np.abs(v - 60) < 20)
+    truth = np.where(box, 1.3 * plane, plane)
+    confident = rng.random((h, w)) < 0.15
+    inv_depth = np.where(confident, truth * (1.0 + 0.01 * rng.standard_normal((h, w))), 1.0)
+    confidence = np.where(confident, 0.8, 0.0).astype(np.float32)
+    visible = np.ones((h, w), bool)
+    cfg = PosedDepthConfig().sweep.planar
+    assert cfg is not None and cfg.local_window > 0
+    _, conf = planar_fill(image, inv_depth, confidence, visible, (0.1, 2.0), cfg)
+    window = int(round(cfg.local_window * w)) | 1
+    inside = (np.abs(u - 80) < 20 - window // 2) & (np.abs(v - 60) < 20 - window // 2)
+    outside = (np.abs(u - 80) > 20 + window // 2) | (np.abs(v - 60) > 20 + window // 2)
+    assert np.all(conf[inside & ~confident] == 0.0)
+    assert np.all(conf[outside & ~confident] >= 0.3)
+    _, unchecked = planar_fill(image, inv_depth, confidence, visible, (0.1, 2.0), PlanarFillConfig())
+    assert np.all(unchecked[box & ~confident] >= 0.3)

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose
+from vgpnav_env.perception.backbones.planar_fill import PlanarFillConfig
 from vgpnav_env.perception.backbones.stereo import SweepConfig, plane_sweep
 from vgpnav_env.perception.retrieval import nearby_cameras
 
@@ -38,7 +39,9 @@ class PosedDepthConfig:
     depth. ``sample_stride``: every that many of the first points score the overlap.
     ``recent_frames``: how many of the sequence's last mapped frames :class:`RecentFrames` keeps.
     ``sweep``: the plane sweep's settings (the map's depth; the backbone's own sweep, which serves
-    the ground peak, has its own in :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig`)."""
+    the ground peak, has its own in :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig`).
+    Only the map's planar completion checks its planes locally (``PlanarFillConfig.local_window``):
+    an object the colour segmentation merges into the floor's segment is not painted as floor."""
 
     enabled: bool = True
     references: int = 5
@@ -49,7 +52,7 @@ class PosedDepthConfig:
     sample_stride: int = 7
     live_references: int = 2
     recent_frames: int = 12
-    sweep: SweepConfig = field(default_factory=SweepConfig)
+    sweep: SweepConfig = field(default_factory=lambda: SweepConfig(planar=PlanarFillConfig(local_window=0.1)))
 
     def __post_init__(self) -> None:
         if self.references < 1 or self.sample_stride < 1:

@@ -11,17 +11,22 @@ filled when its plane is well supported: at least ``min_support`` inliers coveri
 ``min_support_fraction`` of the segment, ``min_inlier_ratio`` of its confident pixels on the
 plane, the inliers spread over ``min_spread`` of the segment's extent in u and v (no
 extrapolation of a slope seen on one edge) and the filled inverse depths inside the swept range.
-Its unconfident visible pixels then get the plane's depth and a confidence above the pipeline's
-threshold (``OccupancyConfig.min_confidence``), ``fill_confidence`` x (0.8 + 0.2 x the inlier
-ratio's margin above ``min_inlier_ratio``). With ``snap_inliers`` the confident pixels on such a
-plane (its inliers) take the plane's depth too (the fit averages their matching noise away);
-confident pixels off the plane keep their own depth, and every confidence is kept.
+Its unconfident visible pixels then get the plane's depth, unless the confident pixels near them
+contradict the plane (in a window of ``local_window`` x the image width, fewer than
+``min_inlier_ratio`` of the confident pixels of accepted segments lie on their plane: an object
+the segmentation merged into the floor's segment keeps its own few points instead of the floor's
+depth), and a confidence above the pipeline's threshold (``OccupancyConfig.min_confidence``),
+``fill_confidence`` x (0.8 + 0.2 x the inlier ratio's margin above ``min_inlier_ratio``). With
+``snap_inliers`` the confident pixels on such a plane (its inliers) take the plane's depth too (the
+fit averages their matching noise away); confident pixels off the plane keep their own depth, and
+every confidence is kept.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from skimage.segmentation import felzenszwalb
@@ -30,8 +35,9 @@ from skimage.segmentation import felzenszwalb
 @dataclass(frozen=True)
 class PlanarFillConfig:
     """Segmentation (``segment_scale``, ``segment_sigma``, ``min_segment_size`` pixels at sweep
-    scale), the support threshold ``support_confidence``, the plane acceptance tests and
-    ``snap_inliers`` (see the module docstring)."""
+    scale), the support threshold ``support_confidence``, the plane acceptance tests,
+    ``snap_inliers`` and the local test's window ``local_window`` (a fraction of the image width,
+    0 = off; see the module docstring)."""
 
     segment_scale: float = 200.0
     segment_sigma: float = 0.5
@@ -45,6 +51,7 @@ class PlanarFillConfig:
     min_spread: float = 0.2
     fill_confidence: float = 0.4
     snap_inliers: bool = True
+    local_window: float = 0.0
 
     def __post_init__(self) -> None:
         if self.hypotheses < 1:
@@ -129,12 +136,29 @@ def planar_fill(
     )
     lo, hi = min(inv_range), max(inv_range)
     fill = good[labels] & ~confident & visible & (fitted >= lo) & (fitted <= hi)
+    if cfg.local_window > 0:
+        planar = good[labels]
+        fill &= ~_contradicted(
+            planar & confident & ~support, planar & support, cfg.local_window, cfg.min_inlier_ratio
+        )
     margin = np.clip((inlier_ratio - cfg.min_inlier_ratio) / max(1.0 - cfg.min_inlier_ratio, 1e-6), 0.0, 1.0)
     fill_conf = cfg.fill_confidence * (0.8 + 0.2 * margin)
     snapped = support & good[labels] if cfg.snap_inliers else False
     out_inv = np.where(fill | snapped, fitted, inv_depth)
     out_conf = np.where(fill, np.maximum(confidence, fill_conf[labels]), confidence).astype(np.float32)
     return out_inv, out_conf
+
+
+def _contradicted(
+    off_plane: NDArray[np.bool_], on_plane: NDArray[np.bool_], window: float, min_ratio: float
+) -> NDArray[np.bool_]:
+    """Pixels whose window (``window`` x the image width, odd) holds too many confident pixels off
+    their segment's accepted plane (``on_plane`` fewer than ``min_ratio`` of both): e.g. an object
+    in front of the floor that the colour segmentation merged into the floor's segment."""
+    size = max(3, int(round(window * off_plane.shape[1])) | 1)
+    off = cv2.boxFilter(off_plane.astype(np.float32), -1, (size, size), normalize=False)
+    on = cv2.boxFilter(on_plane.astype(np.float32), -1, (size, size), normalize=False)
+    return on < min_ratio * (on + off)
 
 
 def ransac_support(
