@@ -207,3 +207,5 @@ def test_planar_fill_leaves_an_object_merged_into_the_planes_segment_unfilled():
     assert np.all(conf[outside & ~confident] >= 0.3)
     _, unchecked = planar_fill(image, inv_depth, confidence, visible, (0.1, 2.0), PlanarFillConfig())
     assert np.all(unchecked[box & ~confident] >= 0.3)
+    with pytest.raises(ValueError, match="local_window"):
+        PlanarFillConfig(local_window=-0.1)

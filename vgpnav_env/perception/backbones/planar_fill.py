@@ -60,6 +60,10 @@ class PlanarFillConfig:
             raise ValueError(f"min_support must be >= 3 (a plane has 3 parameters), got {self.min_support}")
         if not 0.0 < self.fill_confidence <= 1.0 or not 0.0 < self.support_confidence <= 1.0:
             raise ValueError("fill_confidence and support_confidence must be in (0, 1]")
+        if not 0.0 <= self.local_window < 1.0:
+            raise ValueError(
+                f"local_window must be in [0, 1) (a fraction of the image width), got {self.local_window}"
+            )
         if self.inlier_tolerance <= 0:
             raise ValueError(f"inlier_tolerance must be positive, got {self.inlier_tolerance}")
 
@@ -135,15 +139,15 @@ def planar_fill(
         & spread_ok
     )
     lo, hi = min(inv_range), max(inv_range)
-    fill = good[labels] & ~confident & visible & (fitted >= lo) & (fitted <= hi)
+    planar = good[labels]
+    fill = planar & ~confident & visible & (fitted >= lo) & (fitted <= hi)
     if cfg.local_window > 0:
-        planar = good[labels]
         fill &= ~_contradicted(
             planar & confident & ~support, planar & support, cfg.local_window, cfg.min_inlier_ratio
         )
     margin = np.clip((inlier_ratio - cfg.min_inlier_ratio) / max(1.0 - cfg.min_inlier_ratio, 1e-6), 0.0, 1.0)
     fill_conf = cfg.fill_confidence * (0.8 + 0.2 * margin)
-    snapped = support & good[labels] if cfg.snap_inliers else False
+    snapped = support & planar if cfg.snap_inliers else False
     out_inv = np.where(fill | snapped, fitted, inv_depth)
     out_conf = np.where(fill, np.maximum(confidence, fill_conf[labels]), confidence).astype(np.float32)
     return out_inv, out_conf
