@@ -126,3 +126,32 @@ def test_database_stores_xfeat_features_beside_rootsift(tiny_build_dir: Path) ->
     again = Database.open(tiny_build_dir, config=config, progress=False)
     loaded = again.features_for(backbone.config)
     np.testing.assert_array_equal(loaded.descriptors, store.descriptors)
+
+
+def test_fallback_extracts_database_xfeat_features_on_first_use(
+    tiny_build_source: Path, tmp_path: Path
+) -> None:
+    import shutil
+
+    from vgpnav_env.perception.backbones import make_backbone
+    from vgpnav_env.perception.backbones.classical import FeatureCache
+    from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
+    from vgpnav_env.perception.retrieval import VladConfig
+
+    tiny_build_dir = Path(shutil.copytree(tiny_build_source, tmp_path / "build"))  # no stored XFeat yet
+    config = DatabaseConfig(vlad=VladConfig(grid_step=8, n_words=16, kmeans_iterations=15), prior="none")
+    db = Database.open(tiny_build_dir, config=config, progress=False)
+    backbone = make_backbone("classical", database=db)  # the default: RootSIFT with the fallback
+    assert backbone.config.uses_fallback and backbone.fallback is not None
+    lazy = backbone.fallback.feature_cache
+    assert not isinstance(lazy, StoredFeatures) and isinstance(lazy, FeatureCache) and len(lazy) == 0
+    assert not (tiny_build_dir / "database" / "index" / "features-xfeat.npz").exists()
+    got = backbone.fallback.features(db.images[2], 2)
+    fresh = ClassicalBackbone(backbone.config.fallback_config()).extract(db.images[2])
+    np.testing.assert_array_equal(got.descriptors, fresh.descriptors)
+    assert len(lazy) == 1 and 2 in lazy
+    # A backbone matching every pair with XFeat stores every image's; the fallback then uses them.
+    make_backbone("classical", database=db, features="xfeat", matcher="lighterglue")
+    again = Database.open(tiny_build_dir, config=config, progress=False)
+    stored = make_backbone("classical", database=again).fallback.feature_cache
+    assert isinstance(stored, StoredFeatures) and stored.n_images == len(again)

@@ -162,8 +162,10 @@ def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict
 
 def prior_backbone_config(config: DatabaseConfig, backbone_config: ClassicalConfig) -> ClassicalConfig:
     """The classical backbone settings the prior map is reconstructed with: ``backbone_config`` with
-    the map's sweep (``config.prior_sweep``: the prior's points come from the backbone's depth)."""
-    return replace(backbone_config, sweep=config.prior_sweep)
+    the map's sweep (``config.prior_sweep``: the prior's points come from the backbone's depth) and
+    without the XFeat fallback (it would extract XFeat features of most database images while the
+    database is prepared)."""
+    return replace(backbone_config, sweep=config.prior_sweep, fallback_pairs=0)
 
 
 def _jsonable_key(key: dict[str, Any]) -> Any:
@@ -379,23 +381,36 @@ class Database:
     def __len__(self) -> int:
         return len(self.run)
 
-    def features_for(self, config: ClassicalConfig, progress: bool = True) -> FeatureCache:
+    def features_for(
+        self, config: ClassicalConfig, progress: bool = True, every: bool = True
+    ) -> FeatureCache:
         """The feature cache a classical backbone with ``config`` shares with this database.
 
         Features of another kind than the database's backbone's (``config.features``, e.g. XFeat
-        beside RootSIFT) are loaded from their own cache file, or extracted and stored once
-        (``progress``: a progress bar), and kept. Raises ValueError when the stored features of
+        beside RootSIFT) are loaded from their own cache file; when none is stored, ``every``
+        extracts and stores every image's once (``progress``: a progress bar), else (a fallback
+        that matches few references) they are extracted on first use and kept in memory
+        (``feature_cache_size`` images). Raises ValueError when the stored features of
         ``config``'s kind were extracted with other settings (:func:`feature_settings`): open the
         database with that ``backbone_config`` instead.
         """
         if config.features == self.feature_kind:
             store = self.feature_cache
         else:
-            if config.features not in self.other_features:
-                self.other_features[config.features] = _open_features(
-                    self.path / "index", self.run, self.fingerprint, self.config, config, progress
-                )
-            store = self.other_features[config.features]
+            store = self.other_features.get(config.features)
+            if store is None or (every and not isinstance(store, StoredFeatures)):
+                cache, size = self.path / "index", self.config.feature_cache_size
+                if every:
+                    store = _open_features(cache, self.run, self.fingerprint, self.config, config, progress)
+                else:
+                    settings = feature_settings(config)
+                    stored = (
+                        StoredFeatures.load(cache, self.fingerprint, settings, size)
+                        if self.config.store_features
+                        else None
+                    )
+                    store = stored if stored is not None else FeatureCache(size)
+                self.other_features[config.features] = store
         if isinstance(store, StoredFeatures) and store.settings != feature_settings(config):
             raise ValueError(
                 f"the database's stored features were extracted with {store.settings}, the backbone "

@@ -50,7 +50,7 @@ def _classical(
     config = config or ClassicalConfig(**knobs)
     if database is None:
         return ClassicalBackbone(config)
-    fallback = database.features_for(config.fallback_config()) if config.uses_fallback else None
+    fallback = database.features_for(config.fallback_config(), every=False) if config.uses_fallback else None
     return ClassicalBackbone(config, database.features_for(config), fallback)
 
 

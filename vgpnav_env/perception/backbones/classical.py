@@ -92,10 +92,10 @@ class ClassicalConfig:
     where it halved gross pairs against 1.0 -- use ~1 px on real images) or
     ``xfeat_max_epipolar_error`` (px, XFeat: its keypoints are about a pixel precise, SIFT's a
     fifth of one), RANSAC iteration bounds, ``min_inliers``. Fallback (RootSIFT features only;
-    ``fallback_pairs`` 0 = off, the default: on plain-walled scenes 4 halves the lost frames, but in
-    navigation its poses cost collisions): when fewer than ``fallback_min_pairs`` pairs pass, up to
+    ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass, up to
     ``fallback_pairs`` failed pairs (in reference order) are matched again with XFeat + LighterGlue
-    (:meth:`ClassicalConfig.fallback_config`). Planarity test with
+    (:meth:`ClassicalConfig.fallback_config`; the references' XFeat features are extracted when
+    first needed). Planarity test with
     ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
@@ -127,7 +127,7 @@ class ClassicalConfig:
     mutual: bool = True
     max_epipolar_error: float = 0.5
     xfeat_max_epipolar_error: float = 1.0
-    fallback_pairs: int = 0
+    fallback_pairs: int = 4
     fallback_min_pairs: int = 3
     ransac_min_iterations: int = 200
     ransac_max_iterations: int = 2000
