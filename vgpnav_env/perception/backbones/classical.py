@@ -365,13 +365,15 @@ def image_features(image: NDArray[np.uint8], config: ClassicalConfig) -> Feature
 
 
 class FeatureCache:
-    """Least-recently-used store of :class:`Features` by a stable key (e.g. database index)."""
+    """Least-recently-used store of :class:`Features` by a stable key (e.g. database index); safe to
+    share between the backbone's threads (the fallback's pairs extract references concurrently)."""
 
     def __init__(self, max_items: int = 256) -> None:
         if max_items < 1:
             raise ValueError(f"max_items must be >= 1, got {max_items}")
         self.max_items = max_items
         self._items: OrderedDict[Hashable, Features] = OrderedDict()
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self._items)
@@ -380,19 +382,22 @@ class FeatureCache:
         return key in self._items
 
     def get(self, key: Hashable) -> Features | None:
-        features = self._items.get(key)
-        if features is not None:
-            self._items.move_to_end(key)
-        return features
+        with self._lock:
+            features = self._items.get(key)
+            if features is not None:
+                self._items.move_to_end(key)
+            return features
 
     def put(self, key: Hashable, features: Features) -> None:
-        self._items[key] = features
-        self._items.move_to_end(key)
-        while len(self._items) > self.max_items:
-            self._items.popitem(last=False)
+        with self._lock:
+            self._items[key] = features
+            self._items.move_to_end(key)
+            while len(self._items) > self.max_items:
+                self._items.popitem(last=False)
 
     def clear(self) -> None:
-        self._items.clear()
+        with self._lock:
+            self._items.clear()
 
 
 def _poselib_camera(camera: PinholeCamera) -> dict[str, Any]:
