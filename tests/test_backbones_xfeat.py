@@ -155,3 +155,13 @@ def test_fallback_extracts_database_xfeat_features_on_first_use(
     again = Database.open(tiny_build_dir, config=config, progress=False)
     stored = make_backbone("classical", database=again).fallback.feature_cache
     assert isinstance(stored, StoredFeatures) and stored.n_images == len(again)
+
+
+def test_the_prior_map_is_reconstructed_without_the_fallback() -> None:
+    from vgpnav_env.perception.database import DatabaseConfig, _prior_key, prior_backbone_config
+
+    config = DatabaseConfig()
+    assert ClassicalConfig().uses_fallback
+    assert not prior_backbone_config(config, ClassicalConfig()).uses_fallback
+    # The fallback's setting does not change the prior's cache key: cached priors stay valid.
+    assert _prior_key(config, ClassicalConfig()) == _prior_key(config, ClassicalConfig(fallback_pairs=0))
