@@ -132,6 +132,7 @@ def test_fallback_extracts_database_xfeat_features_on_first_use(
     tiny_build_source: Path, tmp_path: Path
 ) -> None:
     import shutil
+    from dataclasses import replace
 
     from vgpnav_env.perception.backbones import make_backbone
     from vgpnav_env.perception.backbones.classical import FeatureCache
@@ -150,6 +151,10 @@ def test_fallback_extracts_database_xfeat_features_on_first_use(
     fresh = ClassicalBackbone(backbone.config.fallback_config()).extract(db.images[2])
     np.testing.assert_array_equal(got.descriptors, fresh.descriptors)
     assert len(lazy) == 1 and 2 in lazy
+    assert db.features_for(backbone.config.fallback_config(), every=False) is lazy  # shared, kept
+    unstored = Database.open(tiny_build_dir, config=replace(config, store_features=False), progress=False)
+    xfeat = backbone.config.fallback_config()
+    assert unstored.features_for(xfeat) is unstored.features_for(xfeat)  # one cache, not one per call
     # A backbone matching every pair with XFeat stores every image's; the fallback then uses them.
     make_backbone("classical", database=db, features="xfeat", matcher="lighterglue")
     again = Database.open(tiny_build_dir, config=config, progress=False)

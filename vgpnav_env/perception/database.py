@@ -398,18 +398,11 @@ class Database:
             store = self.feature_cache
         else:
             store = self.other_features.get(config.features)
-            if store is None or (every and not isinstance(store, StoredFeatures)):
-                cache, size = self.path / "index", self.config.feature_cache_size
-                if every:
-                    store = _open_features(cache, self.run, self.fingerprint, self.config, config, progress)
-                else:
-                    settings = feature_settings(config)
-                    stored = (
-                        StoredFeatures.load(cache, self.fingerprint, settings, size)
-                        if self.config.store_features
-                        else None
-                    )
-                    store = stored if stored is not None else FeatureCache(size)
+            stored = isinstance(store, StoredFeatures)
+            if store is None or (every and self.config.store_features and not stored):
+                store = _open_features(
+                    self.path / "index", self.run, self.fingerprint, self.config, config, progress, every
+                )
                 self.other_features[config.features] = store
         if isinstance(store, StoredFeatures) and store.settings != feature_settings(config):
             raise ValueError(
@@ -566,14 +559,19 @@ def _open_features(
     config: DatabaseConfig,
     backbone_config: ClassicalConfig,
     progress: bool,
+    extract: bool = True,
 ) -> FeatureCache:
     """The database images' features with ``backbone_config``'s settings: loaded from ``cache``,
-    else extracted and saved there; an empty :class:`FeatureCache` without ``store_features``."""
+    else extracted and saved there; an empty :class:`FeatureCache` (features extracted on first
+    use) without ``store_features``, or when none are stored and not ``extract``."""
     if not config.store_features:
         return FeatureCache(config.feature_cache_size)
     settings = feature_settings(backbone_config)
     store = StoredFeatures.load(cache, fingerprint, settings, config.feature_cache_size)
-    if store is None or store.n_images != len(run):
+    missing = store is None or store.n_images != len(run)
+    if missing and not extract:
+        return FeatureCache(config.feature_cache_size)
+    if missing:
         logger.info("extracting the %s features of %d database images", backbone_config.features, len(run))
         backbone = ClassicalBackbone(backbone_config)
         store = StoredFeatures.extract(run.images, backbone, config.feature_cache_size, progress=progress)
