@@ -17,7 +17,8 @@ the mount stays a rule); a row's label is "right" (within 5 cm / 5 deg). ``fit``
 (L-BFGS from zero, :func:`~vgpnav_env.perception.verify.model.fit_model`) and prints the training
 AUC and, per scene, what the model would accept at ``VerifyConfig.accept_probability`` against
 what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every coefficient agrees
-with MODEL's within ``--tolerance``.
+with MODEL's within ``--tolerance``. ``score FRAMES [--model MODEL]`` prints a model's AUC and
+decisions on other frames (held-out scenes' records, collected the same way) without fitting.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, fit_model
+from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, default_model, fit_model
 from vgpnav_env.perception.verify.model import FEATURES
 
 #: Right: within this (metres, degrees) of the truth, the recall threshold the model predicts.
@@ -117,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("-o", "--out", type=Path)
     f.add_argument("--check", type=Path, metavar="MODEL", help="compare with MODEL instead of writing")
     f.add_argument("--tolerance", type=float, default=1e-4)
+    s = sub.add_parser("score", help="a model's AUC and decisions on a frames CSV (e.g. held-out scenes)")
+    s.add_argument("frames", type=Path)
+    s.add_argument("--model", type=Path, help="model JSON (default: the installed model)")
     args = parser.parse_args(argv)
     if args.command == "collect":
         rows = collect(args.reports)
@@ -130,6 +134,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{len(rows)} frames -> {args.out}")
         return 0
     rows = read_rows(args.frames)
+    if args.command == "score":
+        model = VerificationModel.load(args.model) if args.model is not None else default_model()
+        if model is None:
+            print("no model: give --model or install one", file=sys.stderr)
+            return 2
+        print(summary(model, rows))
+        return 0
     model = fit(rows)
     print(summary(model, rows))
     if args.check is not None:
