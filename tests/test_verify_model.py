@@ -37,22 +37,30 @@ def test_the_installed_model_reproduces_from_its_script_and_data(capsys: pytest.
 
 def test_score_reports_a_models_auc_on_other_frames(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """``fit.py score`` evaluates a given model on a frames CSV without fitting: on its own training
-    data the AUC is the one ``fit`` prints; two frames, one right and one gross, rank perfectly."""
+    data the AUC is the one ``fit`` prints; on the most probable right frame and the least probable
+    gross one it is 1."""
     script = _fit_script()
     assert script.main(["score", str(DATA)]) == 0  # the installed model
     installed = capsys.readouterr().out
     assert script.main(["fit", str(DATA)]) == 0
     assert capsys.readouterr().out.splitlines()[0] == installed.splitlines()[0]
     rows = script.read_rows(DATA)
-    right = next(r for r in rows if r["right"] == "1" and float(r["match_share"]) > 0.8)
-    gross = next(r for r in rows if r["gross"] == "1")
+    stored = ROOT / "vgpnav_env" / "perception" / "data" / "verify_model.json"
+    model = VerificationModel.load(stored)
+
+    def probability(row: dict[str, str]) -> float:
+        return float(model.probabilities(np.array([[float(row[f]) for f in FEATURES]]))[0])
+
+    right = max((r for r in rows if r["right"] == "1"), key=probability)
+    gross = min((r for r in rows if r["gross"] == "1"), key=probability)
     two = tmp_path / "two.csv"
     two.write_text(",".join(rows[0]) + "\n" + "\n".join(",".join(r.values()) for r in (right, gross)) + "\n")
-    stored = ROOT / "vgpnav_env" / "perception" / "data" / "verify_model.json"
     assert script.main(["score", str(two), "--model", str(stored)]) == 0
     first = capsys.readouterr().out.splitlines()[0]
     assert first.startswith("rows 2, right 1, gross 1;"), first
     assert "right vs gross 1.000" in first, first
+    assert script.main(["score", str(two), "--model", str(tmp_path / "missing.json")]) == 2
+    assert "cannot read the model" in capsys.readouterr().err
 
 
 def test_fit_recovers_a_known_logistic_model() -> None:

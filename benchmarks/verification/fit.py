@@ -47,7 +47,7 @@ def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
     for root in report_dirs:
         for path in sorted(Path(root).rglob("report.json")):
             report = json.loads(path.read_text())
-            scene = path.parent.name
+            scene = Path(str(report.get("settings", {}).get("scene") or path.parent.name)).name
             for r in report.get("records", []):
                 ev = r.get("evidence") or {}
                 t, deg = r["candidate_translation_m"], r["candidate_rotation_deg"]
@@ -135,7 +135,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = read_rows(args.frames)
     if args.command == "score":
-        model = VerificationModel.load(args.model) if args.model is not None else default_model()
+        try:
+            model = VerificationModel.load(args.model) if args.model is not None else default_model()
+        except (OSError, ValueError, KeyError) as error:
+            print(f"cannot read the model {args.model}: {error}", file=sys.stderr)
+            return 2
         if model is None:
             print("no model: give --model or install one", file=sys.stderr)
             return 2
