@@ -4,6 +4,7 @@ and its decision."""
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +60,10 @@ def test_score_reports_a_models_auc_on_other_frames(tmp_path: Path, capsys: pyte
     first = capsys.readouterr().out.splitlines()[0]
     assert first.startswith("rows 2, right 1, gross 1;"), first
     assert "right vs gross 1.000" in first, first
+    inverted = tmp_path / "inverted.json"  # --model is the model scored: its opposite ranks them wrong
+    replace(model, coef=tuple(-c for c in model.coef), intercept=-model.intercept).save(inverted)
+    assert script.main(["score", str(two), "--model", str(inverted)]) == 0
+    assert "right vs gross 0.000" in capsys.readouterr().out.splitlines()[0]
     assert script.main(["score", str(two), "--model", str(tmp_path / "missing.json")]) == 2
     assert "cannot read the model" in capsys.readouterr().err
 
