@@ -68,6 +68,25 @@ def test_score_reports_a_models_auc_on_other_frames(tmp_path: Path, capsys: pyte
     assert "cannot read the model" in capsys.readouterr().err
 
 
+def test_scenes_leaves_each_scene_out(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``fit.py scenes`` fits on all scenes but one and scores the one left out: one row per scene,
+    and a pooled AUC; a CSV of one scene has nothing to leave out (exit code 2)."""
+    script = _fit_script()
+    rows = script.read_rows(DATA)
+    two = [r for r in rows if r["scene"] in ("home", "hospital")]
+    path = tmp_path / "two.csv"
+    path.write_text(",".join(two[0]) + "\n" + "\n".join(",".join(r.values()) for r in two) + "\n")
+    assert script.main(["scenes", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    pooled = float(out[0].rsplit(" ", 1)[1])
+    assert out[0].startswith("leave one scene out, pooled AUC right vs gross") and 0.5 < pooled <= 1.0
+    assert [line.split(" | ")[0] for line in out[3:]] == ["| home", "| hospital"]
+    home = [r for r in two if r["scene"] == "home"]
+    path.write_text(",".join(home[0]) + "\n" + "\n".join(",".join(r.values()) for r in home) + "\n")
+    assert script.main(["scenes", str(path)]) == 2
+    assert "nothing to leave out" in capsys.readouterr().err
+
+
 def test_fit_recovers_a_known_logistic_model() -> None:
     rng = np.random.default_rng(0)
     X = rng.uniform(0, 1, (4000, 2))

@@ -19,6 +19,7 @@ AUC and, per scene, what the model would accept at ``VerifyConfig.accept_probabi
 what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every coefficient agrees
 with MODEL's within ``--tolerance``. ``score FRAMES [--model MODEL]`` prints a model's AUC and
 decisions on other frames (held-out scenes' records, collected the same way) without fitting.
+``scenes FRAMES`` leaves one scene out at a time: the AUC of a fit on the others, per scene.
 """
 
 from __future__ import annotations
@@ -107,6 +108,27 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
     return "\n".join(lines)
 
 
+def held_out_scenes(rows: list[dict[str, str]]) -> str:
+    """Leave one scene out: per scene, the AUC (right against gross) of the model fitted on the other
+    scenes' rows, and the pooled AUC of those out-of-scene probabilities (how well a fit carries to a
+    scene it has not seen)."""
+    scenes = sorted({r["scene"] for r in rows})
+    X = np.array([[float(r[f]) for f in FEATURES] for r in rows])
+    right = np.array([int(r["right"]) for r in rows], bool)
+    gross = np.array([int(r["gross"]) for r in rows], bool)
+    p = np.full(len(rows), np.nan)
+    lines = ["| left out | rows | gross | AUC right vs gross |", "|---|---|---|---|"]
+    for scene in scenes:
+        out = np.array([r["scene"] == scene for r in rows])
+        p[out] = fit([r for r, o in zip(rows, out, strict=True) if not o]).probabilities(X[out])
+        pair = out & (right | gross)
+        lines.append(
+            f"| {scene} | {int(out.sum())} | {int((out & gross).sum())} | {auc(p[pair], right[pair]):.3f} |"
+        )
+    pooled = auc(p[right | gross], right[right | gross])
+    return "\n".join([f"leave one scene out, pooled AUC right vs gross {pooled:.3f}", *lines])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -121,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("score", help="a model's AUC and decisions on a frames CSV (e.g. held-out scenes)")
     s.add_argument("frames", type=Path)
     s.add_argument("--model", type=Path, help="model JSON (default: the installed model)")
+    v = sub.add_parser("scenes", help="leave one scene out: how a fit carries to an unseen scene")
+    v.add_argument("frames", type=Path)
     args = parser.parse_args(argv)
     if args.command == "collect":
         rows = collect(args.reports)
@@ -134,6 +158,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{len(rows)} frames -> {args.out}")
         return 0
     rows = read_rows(args.frames)
+    if args.command == "scenes":
+        if len({r["scene"] for r in rows}) < 2:
+            print(f"{args.frames} holds one scene: nothing to leave out", file=sys.stderr)
+            return 2
+        print(held_out_scenes(rows))
+        return 0
     if args.command == "score":
         try:
             model = VerificationModel.load(args.model) if args.model is not None else default_model()
