@@ -55,7 +55,7 @@ def test_score_reports_a_models_auc_on_other_frames(tmp_path: Path, capsys: pyte
     right = max((r for r in rows if r["right"] == "1"), key=probability)
     gross = min((r for r in rows if r["gross"] == "1"), key=probability)
     two = tmp_path / "two.csv"
-    two.write_text(",".join(rows[0]) + "\n" + "\n".join(",".join(r.values()) for r in (right, gross)) + "\n")
+    script.write_rows(two, [right, gross])
     assert script.main(["score", str(two), "--model", str(stored)]) == 0
     first = capsys.readouterr().out.splitlines()[0]
     assert first.startswith("rows 2, right 1, gross 1;"), first
@@ -75,14 +75,14 @@ def test_scenes_leaves_each_scene_out(tmp_path: Path, capsys: pytest.CaptureFixt
     rows = script.read_rows(DATA)
     two = [r for r in rows if r["scene"] in ("home", "hospital")]
     path = tmp_path / "two.csv"
-    path.write_text(",".join(two[0]) + "\n" + "\n".join(",".join(r.values()) for r in two) + "\n")
+    script.write_rows(path, two)
     assert script.main(["scenes", str(path)]) == 0
     out = capsys.readouterr().out.splitlines()
     pooled = float(out[0].rsplit(" ", 1)[1])
     assert out[0].startswith("leave one scene out, pooled AUC right vs gross") and 0.5 < pooled <= 1.0
     assert [line.split(" | ")[0] for line in out[3:]] == ["| home", "| hospital"]
     home = [r for r in two if r["scene"] == "home"]
-    path.write_text(",".join(home[0]) + "\n" + "\n".join(",".join(r.values()) for r in home) + "\n")
+    script.write_rows(path, home)
     assert script.main(["scenes", str(path)]) == 2
     assert "nothing to leave out" in capsys.readouterr().err
 

@@ -64,6 +64,14 @@ def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
     return rows
 
 
+def write_rows(path: Path, rows: list[dict[str, object]]) -> None:
+    """Write frame rows (:func:`collect`'s) as CSV, the header from the first row."""
+    with open(path, "w", newline="") as out:
+        writer = csv.DictWriter(out, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def read_rows(path: Path) -> list[dict[str, str]]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -108,7 +116,7 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
     return "\n".join(lines)
 
 
-def held_out_scenes(rows: list[dict[str, str]]) -> str:
+def leave_one_scene_out(rows: list[dict[str, str]]) -> str:
     """Leave one scene out: per scene, the AUC (right against gross) of the model fitted on the other
     scenes' rows, and the pooled AUC of those out-of-scene probabilities (how well a fit carries to a
     scene it has not seen)."""
@@ -151,10 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         if not rows:
             print("no frames with evidence under the given directories", file=sys.stderr)
             return 2
-        with open(args.out, "w", newline="") as out:
-            writer = csv.DictWriter(out, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_rows(args.out, rows)
         print(f"{len(rows)} frames -> {args.out}")
         return 0
     rows = read_rows(args.frames)
@@ -162,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         if len({r["scene"] for r in rows}) < 2:
             print(f"{args.frames} holds one scene: nothing to leave out", file=sys.stderr)
             return 2
-        print(held_out_scenes(rows))
+        print(leave_one_scene_out(rows))
         return 0
     if args.command == "score":
         try:
