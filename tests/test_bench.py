@@ -59,6 +59,22 @@ def compared(results: dict) -> dict:
     return {k: v for k, v in results.items() if k != "run"}
 
 
+def test_perception_split_of_a_corpus_directory(tmp_path, monkeypatch) -> None:
+    """A corpus tuning scene is tuning by its id and by its directory in the corpus (what a report
+    of ``vgpnav eval ... DIR`` names); the same folder name elsewhere, or another corpus scene's
+    directory, is held out."""
+    monkeypatch.setenv("VGPNAV_CACHE", str(tmp_path / "cache"))
+    corpus = tmp_path / "cache" / "corpus"
+    for d in (corpus / "sh3d_studio", corpus / "sh3d_office", tmp_path / "mine" / "sh3d_studio"):
+        d.mkdir(parents=True)
+    assert perception_split("corpus:sh3d_studio") == "tuning"
+    assert perception_split(str(corpus / "sh3d_studio")) == "tuning"
+    assert perception_split(str(corpus / "sh3d_studio") + "/") == "tuning"
+    assert perception_split(str(corpus / "sh3d_office")) == "held-out"
+    assert perception_split(str(tmp_path / "mine" / "sh3d_studio")) == "held-out"
+    assert perception_split(str(corpus / "nothing_here")) == "held-out"
+
+
 def test_shipped_task_splits_and_episode_files_agree() -> None:
     assert "pointnav-v1" in task_names()
     task = load_task("pointnav-v1")
@@ -67,9 +83,10 @@ def test_shipped_task_splits_and_episode_files_agree() -> None:
     assert len(splits["train"]) >= 40 and {"home:1", "hospital:30"} <= set(splits["train"])
     assert {"home", "hospital", "corpus:sh3d_office", "corpus:sh3d_apartment"} <= set(splits["test"])
     tuning = set(perception_tuning_scenes())
-    # Perception is tuned on the built-ins and train seeds only: nothing else of val / test.
-    assert tuning - {"home", "hospital"} <= set(splits["train"])
-    assert not tuning & set(splits["val"])
+    # Perception is tuned on the built-ins, train seeds and a corpus scene of no navigation split:
+    # nothing else of val / test.
+    assert "corpus:sh3d_studio" in tuning and not any("corpus:sh3d_studio" in s for s in splits.values())
+    assert not tuning & set(splits["val"]) and tuning & set(splits["test"]) == {"home", "hospital"}
     assert perception_split("home") == "tuning" and perception_split("home-2") == "tuning"
     assert perception_split("corpus:sh3d_office") == "held-out" and perception_split("home:101") == "held-out"
     for split in ("val", "test"):

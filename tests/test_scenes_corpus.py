@@ -47,6 +47,7 @@ def corpus() -> dict[str, str]:
             ("table", 0.65),
         ),
         ("sh3d_office", ("tree.jpg",), ("plant/Mutt", "cabinet/ovenGlass"), ("cabinet", 0.8)),
+        ("sh3d_studio", (), ("cabinet_1/cabinetBaseboard", "oven/verde_led"), ("shelves", 0.55)),
     ],
 )
 def test_corpus_scene_loads_compiles_and_renders_textures(corpus, name, missing, fixes, glass) -> None:

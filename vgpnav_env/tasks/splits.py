@@ -82,11 +82,21 @@ def perception_tuning_scenes() -> tuple[str, ...]:
 
 
 def perception_split(scene: str) -> str:
-    """``"tuning"`` for a perception tuning scene (its id, or its build's name: ``home-2`` for
-    ``home:2``), else ``"held-out"`` (any other source, including a user's mesh directory)."""
+    """``"tuning"`` for a perception tuning scene (its id, its build's name: ``home-2`` for
+    ``home:2``, or for ``corpus:NAME`` the corpus directory :func:`scene_source` gives), else
+    ``"held-out"`` (any other source, including a user's mesh directory)."""
     tuning = perception_tuning_scenes()
     names = set(tuning) | {s.replace(":", "-") for s in tuning}
-    return "tuning" if scene in names else "held-out"
+    if scene in names:
+        return "tuning"
+    corpus = [s for s in tuning if s.startswith(CORPUS_PREFIX)]
+    if corpus and Path(scene).is_dir():
+        from vgpnav_env.scenes.corpus import default_corpus_dir
+
+        here = Path(scene).resolve()
+        if any(here == (default_corpus_dir() / s[len(CORPUS_PREFIX) :]).resolve() for s in corpus):
+            return "tuning"
+    return "held-out"
 
 
 def scene_source(scene: str) -> str:
