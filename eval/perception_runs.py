@@ -140,6 +140,13 @@ def add_backbone_arguments(parser: argparse.ArgumentParser) -> None:
         help="classical backbone with RootSIFT: when too few pairs pass, match up to N failed pairs "
         "again with XFeat + LighterGlue, 0 = off (default: ClassicalConfig's)",
     )
+    parser.add_argument(
+        "--fallback-min-pairs",
+        type=positive_int_arg,
+        metavar="M",
+        help="classical backbone: the fallback runs when fewer than M RootSIFT pairs pass "
+        "(default: ClassicalConfig's)",
+    )
 
 
 def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str = "temporal") -> None:
@@ -157,13 +164,14 @@ def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str =
 
 def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
     """The ``make_backbone`` options of ``--model`` / ``--weights`` (``--features`` / ``--matcher`` /
-    ``--fallback-pairs`` for the classical backbone); a one-line ValueError when they are missing
-    for ``--backbone learned``, or given for another backbone."""
-    names = ("features", "matcher", "fallback_pairs")
+    ``--fallback-pairs`` / ``--fallback-min-pairs`` for the classical backbone); a one-line
+    ValueError when they are missing for ``--backbone learned``, or given for another backbone."""
+    names = ("features", "matcher", "fallback_pairs", "fallback_min_pairs")
     features = {k: v for k in names if (v := getattr(args, k, None)) is not None}
     if features and args.backbone != "classical":
         raise ValueError(
-            f"--features, --matcher and --fallback-pairs are for --backbone classical, not {args.backbone}"
+            "--features, --matcher, --fallback-pairs and --fallback-min-pairs are for "
+            f"--backbone classical, not {args.backbone}"
         )
     if args.backbone != "learned":
         if args.model is not None or args.weights is not None:
@@ -186,7 +194,10 @@ def classical_features(options: Mapping[str, Any]) -> str:
     config = options.get("config") or ClassicalConfig(**options)
     text = f"{config.features} + {config.matcher}"
     if config.uses_fallback:
-        text += f", XFeat + LighterGlue fallback ({config.fallback_pairs} pairs)"
+        text += (
+            f", XFeat + LighterGlue fallback ({config.fallback_pairs} pairs when fewer than "
+            f"{config.fallback_min_pairs} pass)"
+        )
     return text
 
 

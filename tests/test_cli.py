@@ -189,6 +189,11 @@ BAD_INPUTS = [
     *((f"eval {p} home --size 10", "--size") for p in QUERY_PROTOCOLS),
     *((f"eval {p} home --workers 0", "--workers: must be a positive integer") for p in QUERY_PROTOCOLS[:2]),
     ("eval ablations home --workers 0", "--workers: must be a positive integer"),
+    ("eval localization home --fallback-min-pairs 0", "--fallback-min-pairs: must be a positive integer"),
+    (
+        "eval localization home --backbone learned --model m:f --weights MISSING --fallback-min-pairs 5",
+        "are for --backbone classical",
+    ),
     ("eval localization home --retrieval nope", "invalid choice: 'nope'"),
     ("eval localization home --averaging nope", "invalid choice: 'nope'"),
     ("eval perception home --texture shiny", "invalid choice: 'shiny'"),
@@ -261,3 +266,15 @@ def test_every_command_is_in_the_bad_input_table() -> None:
     tested = {" ".join(line.split()[:2]) if line.startswith(groups) else line.split()[0]
               for line, _ in BAD_INPUTS}  # fmt: skip
     assert tested == set(cli.COMMANDS)
+
+
+def test_fallback_flags_reach_the_classical_backbone_and_its_report_line() -> None:
+    from eval.perception_runs import add_backbone_arguments, backbone_options, classical_features
+
+    parser = argparse.ArgumentParser()
+    add_backbone_arguments(parser)
+    options = backbone_options(parser.parse_args(["--fallback-pairs", "6", "--fallback-min-pairs", "5"]))
+    assert options == {"fallback_pairs": 6, "fallback_min_pairs": 5}
+    text = classical_features(options)
+    assert text == "rootsift + nearest, XFeat + LighterGlue fallback (6 pairs when fewer than 5 pass)"
+    assert "fallback" not in classical_features({"fallback_pairs": 0})
