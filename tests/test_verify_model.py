@@ -4,6 +4,7 @@ and its decision."""
 from __future__ import annotations
 
 import importlib.util
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -120,3 +121,25 @@ def test_more_explained_evidence_is_more_probably_right() -> None:
     p_good, p_bad = model.probabilities(np.array([[good[f] for f in FEATURES], [bad[f] for f in FEATURES]]))
     accept = VerifyConfig().accept_probability
     assert p_good >= accept > p_bad
+
+
+def test_fit_refuses_held_out_frames(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``collect`` marks each row with its report's perception split and ``fit`` refuses rows of a
+    held-out scene (exit code 2, nothing written): held-out frames are only ever scored."""
+    script = _fit_script()
+    rows = script.read_rows(DATA)
+    assert {r["split"] for r in rows} == {"tuning"}
+    mixed = [*rows[:200], *({**r, "scene": "sh3d_office", "split": "held-out"} for r in rows[200:260])]
+    path, model = tmp_path / "mixed.csv", tmp_path / "model.json"
+    script.write_rows(path, mixed)
+    assert script.main(["fit", str(path), "-o", str(model)]) == 2
+    assert "['sh3d_office']" in capsys.readouterr().err and not model.exists()
+    assert script.main(["score", str(path)]) == 0  # held-out frames may be scored
+    report = tmp_path / "run" / "report.json"
+    report.parent.mkdir()
+    evidence = {f: 0.5 for f in FEATURES}
+    record = dict(frame=0, status="localized", evidence=evidence, gate="", candidate_translation_m=0.01,
+                  candidate_rotation_deg=0.2)  # fmt: skip
+    report.write_text(json.dumps({"settings": {"scene": "/data/my_scan"}, "records": [record]}))
+    (row,) = script.collect([tmp_path / "run"])
+    assert row["scene"] == "my_scan" and row["split"] == "held-out" and row["right"] == 1

@@ -13,7 +13,8 @@ Then, from this directory's parent::
         -o vgpnav_env/perception/data/verify_model.json
 
 ``collect`` keeps every frame whose candidate pose has evidence and an error (not mount rejections:
-the mount stays a rule); a row's label is "right" (within 5 cm / 5 deg). ``fit`` is deterministic
+the mount stays a rule); a row's label is "right" (within 5 cm / 5 deg), its ``split`` the report's
+perception split. ``fit`` refuses held-out rows (exit code 2) and is deterministic
 (L-BFGS from zero, :func:`~vgpnav_env.perception.verify.model.fit_model`) and prints the training
 AUC and, per scene, what the model would accept at ``VerifyConfig.accept_probability`` against
 what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every coefficient agrees
@@ -34,6 +35,7 @@ import numpy as np
 
 from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, default_model, fit_model
 from vgpnav_env.perception.verify.model import FEATURES
+from vgpnav_env.tasks.splits import perception_split
 
 #: Right: within this (metres, degrees) of the truth, the recall threshold the model predicts.
 RIGHT = (0.05, 5.0)
@@ -42,13 +44,16 @@ L2 = 1.0
 
 
 def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
-    """The rows (scene, frame, status, gross, right, features) of every ``report.json`` below
-    ``report_dirs``."""
+    """The rows (scene, split, frame, status, right, gross, features) of every ``report.json`` below
+    ``report_dirs``; ``split`` is the report's perception split (tuning or held-out)."""
     rows = []
     for root in report_dirs:
         for path in sorted(Path(root).rglob("report.json")):
             report = json.loads(path.read_text())
-            scene = Path(str(report.get("settings", {}).get("scene") or path.parent.name)).name
+            settings = report.get("settings", {})
+            source = str(settings.get("scene") or path.parent.name)
+            split = settings.get("perception split") or perception_split(source)
+            scene = Path(source).name
             for r in report.get("records", []):
                 ev = r.get("evidence") or {}
                 t, deg = r["candidate_translation_m"], r["candidate_rotation_deg"]
@@ -58,7 +63,8 @@ def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
                     continue
                 right = t <= RIGHT[0] and deg <= RIGHT[1]
                 gross = t > 0.5 or deg > 10.0
-                row = {"scene": scene, "frame": r["frame"], "status": r["status"], "right": int(right)}
+                row = {"scene": scene, "split": split, "frame": r["frame"], "status": r["status"]}
+                row |= {"right": int(right)}
                 row |= {"gross": int(gross)} | {f: float(ev[f]) for f in FEATURES}
                 rows.append(row)
     return rows
@@ -180,6 +186,14 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(summary(model, rows))
         return 0
+    held_out = sorted({r["scene"] for r in rows if r.get("split") != "tuning"})
+    if held_out:
+        print(
+            f"{args.frames}: rows of scenes not marked tuning {held_out}; "
+            "fit only on perception tuning scenes (score held-out frames with `score`)",
+            file=sys.stderr,
+        )
+        return 2
     model = fit(rows)
     print(summary(model, rows))
     if args.check is not None:
