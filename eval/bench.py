@@ -324,7 +324,12 @@ def run_bench(run: BenchRun, workers: Workers | None = None) -> dict[str, Any]:
             for scene in dict.fromkeys(e.scene_id for _, e in todo):
                 given = {"database_dir": run.databases[scene]} if scene in run.databases else {}
                 kwargs = prepare_database(
-                    scene_source(scene), env_kwargs, {**wrapper, **given}, run.progress, workers
+                    scene_source(scene),
+                    env_kwargs,
+                    {**wrapper, **given},
+                    run.progress,
+                    workers,
+                    plan.backbone,
                 )
                 databases[scene] = str(kwargs["database_dir"])
         setup = BenchSetup(plan, env_kwargs, wrapper, databases)

@@ -543,13 +543,18 @@ def navigation_settings(
 
 
 def prepare_database(
-    scene: str, env_kwargs: dict[str, Any], wrapper_kwargs: dict[str, Any], progress: bool, workers: Workers
+    scene: str,
+    env_kwargs: dict[str, Any],
+    wrapper_kwargs: dict[str, Any],
+    progress: bool,
+    workers: Workers,
+    backbone: str = "classical",
 ) -> dict[str, Any]:
     """``wrapper_kwargs`` with a ``database_dir``: the given one or the scene's default build at
     the env's image size (built now if missing, with progress). When ``workers`` run elsewhere than
-    this process, it is opened once here so that its index, features and prior are cached before
-    they open it; the prior on as many processes as local workers (at most this process's CPU
-    share)."""
+    this process, it is opened once here so that its index, features, prior and the classical
+    backbone's scene check are cached before they open it; the prior on as many processes as local
+    workers (at most this process's CPU share)."""
     from vgpnav_env.perception.backbones.threads import cpu_share
     from vgpnav_env.perception.database import open_database
     from vgpnav_env.robot import FOVY_DEG
@@ -563,7 +568,15 @@ def prepare_database(
         kwargs["database_dir"] = scene_database_dir(scene, size, texture, fovy, progress=progress)
     if workers.workers > 1 or workers.ray_address is not None:
         processes = 1 if workers.ray_address is not None else min(workers.workers, cpu_share())
-        open_database(kwargs["database_dir"], kwargs.get("database_config"), processes=processes)
+        db = open_database(kwargs["database_dir"], kwargs.get("database_config"), processes=processes)
+        if backbone == "classical":
+            from vgpnav_env.perception.backbones import ClassicalConfig
+            from vgpnav_env.perception.feature_choice import choose_features
+
+            options = kwargs.get("backbone_options") or {}
+            config = options.get("config") or ClassicalConfig(**options)
+            if config.features == "rootsift" and config.switch_share > 0:
+                choose_features(db, config)
     return kwargs
 
 
@@ -608,7 +621,7 @@ def evaluate_navigation(
     try:
         several = workers.workers > 1 or workers.ray_address is not None
         if plan.backbone not in (None, "model"):
-            wrapper_kwargs = prepare_database(scene, kwargs, wrapper_kwargs, progress, workers)
+            wrapper_kwargs = prepare_database(scene, kwargs, wrapper_kwargs, progress, workers, plan.backbone)
         setup = NavigationSetup(plan, kwargs, wrapper_kwargs, plots=out_dir is not None)
         items = [(i, seed + i) for i in range(episodes)]
         # Several workers: the longest episodes first, so that the last one does not run alone.

@@ -38,11 +38,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from vgpnav_env.arguments import count_arg, positive_int_arg
+from vgpnav_env.arguments import count_arg, positive_int_arg, unit_interval_arg
 from vgpnav_env.eval.workers import Workers, note
 from vgpnav_env.geometry import camera_yaw_pitch, rotation_angle, wrap_angle
 from vgpnav_env.perception.backbones import BACKBONES, Backbone, Privileged, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, open_database
+from vgpnav_env.perception.feature_choice import FeatureChoice, cached_choice
 from vgpnav_env.perception.motion_averaging import AVERAGING_METHODS
 from vgpnav_env.perception.odometry import VisualOdometry, fuse_motion
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
@@ -147,6 +148,14 @@ def add_backbone_arguments(parser: argparse.ArgumentParser) -> None:
         help="classical backbone: the fallback runs when fewer than M RootSIFT pairs pass "
         "(default: ClassicalConfig's)",
     )
+    parser.add_argument(
+        "--switch-share",
+        type=unit_interval_arg,
+        metavar="S",
+        help="classical backbone: match every pair with XFeat + LighterGlue where RootSIFT gets fewer "
+        "than S of the database's own overlapping pairs right and XFeat more; 0 = never "
+        "(default: ClassicalConfig's)",
+    )
 
 
 def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str = "temporal") -> None:
@@ -164,13 +173,14 @@ def add_perception_mode_argument(parser: argparse.ArgumentParser, default: str =
 
 def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
     """The ``make_backbone`` options of ``--model`` / ``--weights`` (``--features`` / ``--matcher`` /
-    ``--fallback-pairs`` / ``--fallback-min-pairs`` for the classical backbone); a one-line
-    ValueError when they are missing for ``--backbone learned``, or given for another backbone."""
-    names = ("features", "matcher", "fallback_pairs", "fallback_min_pairs")
+    ``--fallback-pairs`` / ``--fallback-min-pairs`` / ``--switch-share`` for the classical
+    backbone); a one-line ValueError when they are missing for ``--backbone learned``, or given for
+    another backbone."""
+    names = ("features", "matcher", "fallback_pairs", "fallback_min_pairs", "switch_share")
     features = {k: v for k in names if (v := getattr(args, k, None)) is not None}
     if features and args.backbone != "classical":
         raise ValueError(
-            "--features, --matcher, --fallback-pairs and --fallback-min-pairs are for "
+            "--features, --matcher, --fallback-pairs, --fallback-min-pairs and --switch-share are for "
             f"--backbone classical, not {args.backbone}"
         )
     if args.backbone != "learned":
@@ -186,18 +196,24 @@ def backbone_options(args: argparse.Namespace) -> dict[str, Any]:
     return {"model": args.model, "weights_path": args.weights}
 
 
-def classical_features(options: Mapping[str, Any]) -> str:
+def classical_features(options: Mapping[str, Any], choice: FeatureChoice | None = None) -> str:
     """The classical backbone's features and matcher with ``options`` (the ``ClassicalConfig``
-    fields), for reports, e.g. ``rootsift + nearest, XFeat + LighterGlue fallback (4 pairs)``."""
+    fields), for reports, e.g. ``rootsift + nearest, XFeat + LighterGlue fallback (4 pairs when
+    fewer than 3 pass)``; with the database's ``choice``
+    (:func:`~vgpnav_env.perception.feature_choice.choose_features`) the features it chose and why."""
     from vgpnav_env.perception.backbones import ClassicalConfig
 
     config = options.get("config") or ClassicalConfig(**options)
+    if choice is not None and choice.features == "xfeat":
+        config = config.fallback_config()
     text = f"{config.features} + {config.matcher}"
     if config.uses_fallback:
         text += (
             f", XFeat + LighterGlue fallback ({config.fallback_pairs} pairs when fewer than "
             f"{config.fallback_min_pairs} pass)"
         )
+    if choice is not None:
+        text += f"; scene check: {choice.describe()}"
     return text
 
 
@@ -383,6 +399,15 @@ class QueryRun:
         mode = getattr(args, "perception_mode", "paper")
         return cls(build_dir, args.backbone, options, config, args.queries, args.seed, mode)
 
+    def feature_choice(self) -> FeatureChoice | None:
+        """The classical backbone's scene check on this build's database, once it has been made."""
+        from vgpnav_env.perception.backbones import ClassicalConfig
+
+        if self.backbone != "classical":
+            return None
+        config = self.backbone_options.get("config") or ClassicalConfig(**self.backbone_options)
+        return cached_choice(self.build_dir, config) if config.features == "rootsift" else None
+
     def settings(self) -> dict[str, Any]:
         """The report's settings: build, its scene's perception split (tuning or held-out,
         :func:`~vgpnav_env.tasks.splits.perception_split`), query layout and image size, backbone,
@@ -393,12 +418,12 @@ class QueryRun:
         n = len(query_subset(meta["n_frames"], self.n_queries))
         return {
             "build": str(self.build_dir),
-            "perception split": perception_split(str(meta.get("scene", ""))),
+            "perception split": perception_split(str(meta.get("source") or meta.get("scene", ""))),
             "layout": meta["layout"],
             "image size": f"{meta['width']}x{meta['height']}",
             "backbone": self.backbone,
             **(
-                {"features": classical_features(self.backbone_options)}
+                {"features": classical_features(self.backbone_options, self.feature_choice())}
                 if self.backbone == "classical"
                 else {}
             ),

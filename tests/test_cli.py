@@ -190,6 +190,7 @@ BAD_INPUTS = [
     *((f"eval {p} home --workers 0", "--workers: must be a positive integer") for p in QUERY_PROTOCOLS[:2]),
     ("eval ablations home --workers 0", "--workers: must be a positive integer"),
     ("eval localization home --fallback-min-pairs 0", "--fallback-min-pairs: must be a positive integer"),
+    ("eval localization home --switch-share 1.5", "--switch-share: must be a number from 0 to 1"),
     (
         "eval localization home --backbone learned --model m:f --weights MISSING --fallback-min-pairs 5",
         "are for --backbone classical",
@@ -275,6 +276,7 @@ def test_fallback_flags_reach_the_classical_backbone_and_its_report_line() -> No
     add_backbone_arguments(parser)
     options = backbone_options(parser.parse_args(["--fallback-pairs", "6", "--fallback-min-pairs", "5"]))
     assert options == {"fallback_pairs": 6, "fallback_min_pairs": 5}
+    assert backbone_options(parser.parse_args(["--switch-share", "0"])) == {"switch_share": 0.0}
     text = classical_features(options)
     assert text == "rootsift + nearest, XFeat + LighterGlue fallback (6 pairs when fewer than 5 pass)"
     assert "fallback" not in classical_features({"fallback_pairs": 0})

@@ -63,6 +63,17 @@ def positive_float_arg(text: str) -> float:
     return value
 
 
+def unit_interval_arg(text: str) -> float:
+    """argparse type for a share: a number from 0 to 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a number from 0 to 1, got {text!r}")
+    return value
+
+
 def count_arg(text: str) -> int:
     """argparse type for counts where 0 means "all" (e.g. ``--queries``): non-negative integers."""
     return _int_at_least(text, 0, "a non-negative")

@@ -153,9 +153,11 @@ def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict
     return {
         "version": PRIOR_VERSION,
         "database": {k: asdict(config)[k] for k in keys} | {"obstacle_max": config.obstacle_max},
-        # The thread count does not change the result.
+        # The thread count does not change the result, nor does the scene check (queries only).
         "backbone": {
-            k: v for k, v in asdict(prior_backbone_config(config, backbone_config)).items() if k != "threads"
+            k: v
+            for k, v in asdict(prior_backbone_config(config, backbone_config)).items()
+            if k not in ("threads", "switch_share")
         },
     }
 

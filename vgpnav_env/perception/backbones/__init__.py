@@ -2,7 +2,9 @@
 
 :func:`make_backbone` is the one way to get a backbone: ``make_backbone(name, database=db,
 seed=s, **options)`` builds ``classical`` (default, pixels only; with a ``database`` it reads the
-database's stored features, after checking they were extracted with its settings),
+database's stored features, after checking they were extracted with its settings, and matches
+with XFeat + LighterGlue where the database's own pairs show RootSIFT failing:
+:mod:`~vgpnav_env.perception.feature_choice`),
 ``simulated`` (PRIVILEGED ground truth + noise; ``seed`` seeds its noise) or ``learned`` (needs
 ``model`` and a local ``weights_path``; nothing is downloaded). :data:`BACKBONES` lists the names
 (command-line choices read it). A backbone is reseeded per episode with :meth:`Backbone.reseed`.
@@ -50,6 +52,11 @@ def _classical(
     config = config or ClassicalConfig(**knobs)
     if database is None:
         return ClassicalBackbone(config)
+    if config.features == "rootsift" and config.switch_share > 0:
+        from vgpnav_env.perception.feature_choice import choose_features
+
+        if choose_features(database, config).features == "xfeat":
+            config = config.fallback_config()
     fallback = database.features_for(config.fallback_config(), every=False) if config.uses_fallback else None
     return ClassicalBackbone(config, database.features_for(config), fallback)
 

@@ -1,0 +1,142 @@
+"""Which local features suit a scene, judged on its database's own posed image pairs.
+
+RootSIFT matches the textured scenes this project generates well and fails on plain painted walls
+and untextured furniture, where XFeat + LighterGlue gets more pairs right. The database's images
+come with their metric poses, so each scene can be tested before a query arrives:
+:func:`choose_features` takes ``SAMPLE_FRAMES`` evenly spaced database frames, pairs each with its
+:func:`~vgpnav_env.perception.database.prior_neighbours` (the overlapping views the prior map is
+reconstructed from) and counts the pairs whose two-view pose is right (rotation within
+``RIGHT_DEG[0]``, translation direction within ``RIGHT_DEG[1]`` degrees of the known relative
+pose). When RootSIFT gets fewer than ``ClassicalConfig.switch_share`` of them right and
+XFeat + LighterGlue more, the classical backbone matches every pair with XFeat + LighterGlue
+(:meth:`~vgpnav_env.perception.backbones.ClassicalConfig.fallback_config`). Only database images
+and poses are read; the result is cached beside the database's index, keyed by its fingerprint and
+the feature settings.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import asdict, dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from vgpnav_env.atomic import atomic_write
+from vgpnav_env.geometry import invert_pose, rotation_angle
+from vgpnav_env.perception.backbones.classical import (
+    ClassicalBackbone,
+    ClassicalConfig,
+    backbone_feature_settings,
+)
+from vgpnav_env.runs import run_fingerprint
+
+if TYPE_CHECKING:
+    from vgpnav_env.perception.database import Database, DatabaseConfig
+
+logger = logging.getLogger(__name__)
+
+#: Database frames tested (evenly spaced), each with its prior neighbours (up to 5).
+SAMPLE_FRAMES = 30
+#: A pair is right within this rotation and translation direction error (degrees).
+RIGHT_DEG = (5.0, 10.0)
+_CACHE_FILE = "feature_choice.json"
+_VERSION = 1
+
+
+@dataclass(frozen=True)
+class FeatureChoice:
+    """The features the backbone uses on a database (``"rootsift"`` or ``"xfeat"``), with the
+    shares of its tested pairs each got right (``xfeat`` None when RootSIFT passed the test)."""
+
+    features: str
+    rootsift: float
+    xfeat: float | None
+    n_pairs: int
+
+    def describe(self) -> str:
+        """One line for reports, e.g. ``xfeat (database pairs right: RootSIFT 0.06, XFeat 0.18 of 147)``."""
+        shares = f"RootSIFT {self.rootsift:.2f}"
+        if self.xfeat is not None:
+            shares += f", XFeat {self.xfeat:.2f}"
+        return f"{self.features} (database pairs right: {shares} of {self.n_pairs})"
+
+
+def pair_share(db: Database, config: ClassicalConfig, progress: bool = False) -> tuple[float, int]:
+    """The share of the tested database pairs (module docstring) the backbone with ``config`` gets
+    right, and the number of pairs (0 when the database has no overlapping views)."""
+    from vgpnav_env.perception.database import prior_neighbours
+
+    config = replace(config, fallback_pairs=0)
+    backbone = ClassicalBackbone(config, db.features_for(config, progress=progress, every=False))
+    right = total = 0
+    for j in np.unique(np.linspace(0, len(db) - 1, SAMPLE_FRAMES).round().astype(int)):
+        fj = backbone.features(db.images[j], int(j))
+        for i in prior_neighbours(db.poses, int(j), db.config):
+            pair, _, _ = backbone.relative_pose(fj, backbone.features(db.images[i], int(i)), db.camera)
+            total += 1
+            if pair is None:
+                continue
+            T_ij = invert_pose(db.poses[i]) @ db.poses[j]
+            direction = T_ij[:3, 3] / max(float(np.linalg.norm(T_ij[:3, 3])), 1e-9)
+            rotation = np.degrees(rotation_angle(pair.R, T_ij[:3, :3]))
+            angle = np.degrees(np.arccos(np.clip(float(pair.t @ direction), -1.0, 1.0)))
+            right += int(rotation <= RIGHT_DEG[0] and angle <= RIGHT_DEG[1])
+    return (right / total if total else 0.0), total
+
+
+def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -> dict[str, Any]:
+    alternative = config.fallback_config()
+    key = {
+        "version": _VERSION,
+        "fingerprint": fingerprint,
+        "sample": [SAMPLE_FRAMES, list(RIGHT_DEG), db_config.prior_baseline, db_config.prior_neighbours],
+        "switch_share": config.switch_share,
+        "rootsift": backbone_feature_settings(config) | {"max_error": config.max_epipolar_error},
+        "xfeat": backbone_feature_settings(alternative) | {"max_error": alternative.xfeat_max_epipolar_error},
+    }
+    return json.loads(json.dumps(key))
+
+
+def cached_choice(
+    run_dir: str | os.PathLike, config: ClassicalConfig, db_config: DatabaseConfig | None = None
+) -> FeatureChoice | None:
+    """The choice :func:`choose_features` stored for the database run at ``run_dir`` (or a build's
+    ``database/``) with these settings; None when it has not been made (or the run changed)."""
+    from vgpnav_env.perception.database import DatabaseConfig, database_run_dir
+
+    path = database_run_dir(run_dir)
+    try:
+        stored = json.loads((path / "index" / _CACHE_FILE).read_text())
+        if stored.get("key") == _key(run_fingerprint(path), db_config or DatabaseConfig(), config):
+            return FeatureChoice(**stored["choice"])
+    except (OSError, ValueError, TypeError, KeyError):
+        pass
+    return None
+
+
+def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
+    """The features for a backbone with ``config`` on ``db`` (module docstring): RootSIFT unless it
+    gets fewer than ``config.switch_share`` of the database's tested pairs right and XFeat +
+    LighterGlue more. Cached in ``<database>/index/``."""
+    key = _key(db.fingerprint, db.config, config)
+    path = db.path / "index" / _CACHE_FILE
+    try:
+        stored = json.loads(path.read_text())
+        if stored.get("key") == key:
+            return FeatureChoice(**stored["choice"])
+    except (OSError, ValueError, TypeError, KeyError):
+        pass
+    rootsift, n = pair_share(db, config)
+    xfeat = None
+    features = "rootsift"
+    if rootsift < config.switch_share:
+        xfeat, _ = pair_share(db, config.fallback_config())
+        features = "xfeat" if xfeat > rootsift else "rootsift"
+    choice = FeatureChoice(features, rootsift, xfeat, n)
+    logger.info("features for %s: %s", db.path, choice.describe())
+    text = json.dumps({"key": key, "choice": asdict(choice)}, indent=1)
+    atomic_write(path, lambda f: f.write(text.encode()))
+    return choice
