@@ -8,7 +8,9 @@ come with their metric poses, so each scene can be tested before a query arrives
 reconstructed from) and counts the pairs whose two-view pose is right (rotation within
 ``RIGHT_DEG[0]``, translation direction within ``RIGHT_DEG[1]`` degrees of the known relative
 pose). When RootSIFT gets fewer than ``ClassicalConfig.switch_share`` of them right and
-XFeat + LighterGlue more, the classical backbone matches every pair with XFeat + LighterGlue
+XFeat + LighterGlue at least ``ClassicalConfig.switch_gain`` times as many (the switch costs CPU,
+so a gain within the sample's noise does not pay), the classical backbone matches every pair with
+XFeat + LighterGlue
 (:meth:`~vgpnav_env.perception.backbones.ClassicalConfig.fallback_config`). Only database images
 and poses are read; the result is cached beside the database's index, keyed by its fingerprint and
 the feature settings.
@@ -93,7 +95,7 @@ def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -
         "version": _VERSION,
         "fingerprint": fingerprint,
         "sample": [SAMPLE_FRAMES, list(RIGHT_DEG), db_config.prior_baseline, db_config.prior_neighbours],
-        "switch_share": config.switch_share,
+        "switch": [config.switch_share, config.switch_gain],
         "rootsift": backbone_feature_settings(config) | {"max_error": config.max_epipolar_error},
         "xfeat": backbone_feature_settings(alternative) | {"max_error": alternative.xfeat_max_epipolar_error},
     }
@@ -120,7 +122,7 @@ def cached_choice(
 def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     """The features for a backbone with ``config`` on ``db`` (module docstring): RootSIFT unless it
     gets fewer than ``config.switch_share`` of the database's tested pairs right and XFeat +
-    LighterGlue more. Cached in ``<database>/index/``."""
+    LighterGlue ``config.switch_gain`` times as many. Cached in ``<database>/index/``."""
     key = _key(db.fingerprint, db.config, config)
     path = db.path / "index" / _CACHE_FILE
     try:
@@ -134,7 +136,7 @@ def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     features = "rootsift"
     if rootsift < config.switch_share:
         xfeat, _ = pair_share(db, config.fallback_config())
-        features = "xfeat" if xfeat > rootsift else "rootsift"
+        features = "xfeat" if xfeat > 0 and xfeat >= config.switch_gain * rootsift else "rootsift"
     choice = FeatureChoice(features, rootsift, xfeat, n)
     logger.info("features for %s: %s", db.path, choice.describe())
     text = json.dumps({"key": key, "choice": asdict(choice)}, indent=1)
