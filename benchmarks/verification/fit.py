@@ -132,15 +132,17 @@ def leave_one_scene_out(rows: list[dict[str, str]]) -> str:
     gross = np.array([int(r["gross"]) for r in rows], bool)
     p = np.full(len(rows), np.nan)
     lines = ["| left out | rows | gross | AUC right vs gross |", "|---|---|---|---|"]
+    per_scene = []
     for scene in scenes:
         out = np.array([r["scene"] == scene for r in rows])
         p[out] = fit([r for r, o in zip(rows, out, strict=True) if not o]).probabilities(X[out])
         pair = out & (right | gross)
-        lines.append(
-            f"| {scene} | {int(out.sum())} | {int((out & gross).sum())} | {auc(p[pair], right[pair]):.3f} |"
-        )
+        per_scene.append(auc(p[pair], right[pair]))
+        lines.append(f"| {scene} | {int(out.sum())} | {int((out & gross).sum())} | {per_scene[-1]:.3f} |")
     pooled = auc(p[right | gross], right[right | gross])
-    return "\n".join([f"leave one scene out, pooled AUC right vs gross {pooled:.3f}", *lines])
+    mean = float(np.nanmean(per_scene))
+    head = f"leave one scene out, pooled AUC right vs gross {pooled:.3f}, mean over scenes {mean:.3f}"
+    return "\n".join([head, *lines])
 
 
 def main(argv: list[str] | None = None) -> int:
