@@ -39,6 +39,7 @@ from vgpnav_env.eval.perception_runs import (
     add_backbone_arguments,
     add_perception_mode_argument,
     backbone_options,
+    classical_features,
 )
 from vgpnav_env.eval.report import RunClock, markdown_table, print_headline, run_settings, write_report
 from vgpnav_env.eval.workers import Workers, add_worker_arguments, note, workers_from_args
@@ -542,6 +543,20 @@ def navigation_settings(
     }
 
 
+def classical_settings(backbone: str | None, wrapper_kwargs: dict[str, Any]) -> dict[str, str]:
+    """The report's ``features`` line for the classical backbone: its features and matcher and,
+    once made, the database's scene check (:func:`~vgpnav_env.eval.perception_runs.classical_features`)."""
+    if backbone != "classical" or wrapper_kwargs.get("database_dir") is None:
+        return {}
+    from vgpnav_env.perception.backbones import ClassicalConfig
+    from vgpnav_env.perception.feature_choice import cached_choice
+
+    options = dict(wrapper_kwargs.get("backbone_options") or {})
+    config = options.get("config") or ClassicalConfig(**options)
+    choice = cached_choice(wrapper_kwargs["database_dir"], config) if config.features == "rootsift" else None
+    return {"features": classical_features(options, choice)}
+
+
 def prepare_database(
     scene: str,
     env_kwargs: dict[str, Any],
@@ -635,6 +650,7 @@ def evaluate_navigation(
     mode = "model" if plan.backbone == "model" else wrapper_kwargs.get("perception_mode", "temporal")
     settings = {
         **navigation_settings(scene, plan, kwargs, episodes, seed, mode),
+        **classical_settings(plan.backbone, wrapper_kwargs),
         **run_settings(clock, workers.where, workers.cpu_seconds),
     }
     report = {

@@ -83,3 +83,14 @@ def test_rootsift_stays_where_xfeat_does_not_double_it_or_the_check_is_off(
     for bad in ({"switch_share": 1.5}, {"switch_gain": 0.5}):
         with pytest.raises(ValueError, match="switch_share in"):
             ClassicalConfig(**bad)
+
+
+def test_navigation_reports_name_the_scene_check(database: Database) -> None:
+    from eval.navigation import classical_settings
+
+    kwargs = {"database_dir": str(database.path), "backbone_options": {"threads": 1}}
+    assert classical_settings("classical", kwargs) == {"features": classical_features({})}  # not made yet
+    choose_features(database, ClassicalConfig(threads=1))
+    line = classical_settings("classical", kwargs)["features"]
+    assert "; scene check: rootsift (database pairs right: RootSIFT 0." in line
+    assert classical_settings("simulated", kwargs) == {} and classical_settings("classical", {}) == {}
