@@ -19,7 +19,7 @@ from vgpnav_env.build import build_runs, default_build_dir
 from vgpnav_env.perception.backbones import ClassicalConfig
 from vgpnav_env.perception.backbones.threads import configure_threads
 from vgpnav_env.perception.database import DatabaseConfig, open_database
-from vgpnav_env.perception.feature_choice import choose_features, pair_share
+from vgpnav_env.perception.feature_choice import choose_features, pair_outcomes, sign_test
 
 
 def main() -> None:
@@ -32,7 +32,7 @@ def main() -> None:
     args = parser.parse_args()
     configure_threads(1)
     config = ClassicalConfig(threads=1)
-    print("| scene | RootSIFT | XFeat + LighterGlue | chosen | pairs | CPU s |")
+    print("| scene | RootSIFT | XFeat + LighterGlue (sign test) | chosen | pairs | CPU s |")
     print("|---|---|---|---|---|---|")
     for scene in args.scenes:
         path = (
@@ -43,10 +43,11 @@ def main() -> None:
         db = open_database(path, DatabaseConfig(prior="none"))
         t0 = time.process_time()
         choice = choose_features(db, config)
-        xfeat = choice.xfeat
+        xfeat, p = choice.xfeat, choice.p
         if xfeat is None and args.both:
-            xfeat, _ = pair_share(db, config.fallback_config())
-        shown = "not tried" if xfeat is None else f"{xfeat:.2f}"
+            outcomes = pair_outcomes(db, config.fallback_config())
+            xfeat, p = float(outcomes.mean()), sign_test(pair_outcomes(db, config), outcomes)
+        shown = "not tried" if xfeat is None else f"{xfeat:.2f} (p {p:.2g})"
         print(
             f"| {scene} | {choice.rootsift:.2f} | {shown} | {choice.features} | {choice.n_pairs} | "
             f"{time.process_time() - t0:.1f} |",

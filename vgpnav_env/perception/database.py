@@ -157,7 +157,7 @@ def _prior_key(config: DatabaseConfig, backbone_config: ClassicalConfig) -> dict
         "backbone": {
             k: v
             for k, v in asdict(prior_backbone_config(config, backbone_config)).items()
-            if k not in ("threads", "switch_share", "switch_gain")
+            if k not in ("threads", "switch_share")
         },
     }
 

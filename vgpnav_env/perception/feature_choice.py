@@ -8,9 +8,9 @@ come with their metric poses, so each scene can be tested before a query arrives
 reconstructed from) and counts the pairs whose two-view pose is right (rotation within
 ``RIGHT_DEG[0]``, translation direction within ``RIGHT_DEG[1]`` degrees of the known relative
 pose). When RootSIFT gets fewer than ``ClassicalConfig.switch_share`` of them right and
-XFeat + LighterGlue at least ``ClassicalConfig.switch_gain`` times as many (the switch costs CPU,
-so a gain within the sample's noise does not pay), the classical backbone matches every pair with
-XFeat + LighterGlue
+XFeat + LighterGlue gets significantly more of the same pairs right (a one-sided sign test on the
+pairs only one of them gets right, at ``SIGNIFICANCE``: the switch costs CPU, so a gain within the
+sample's noise does not pay), the classical backbone matches every pair with XFeat + LighterGlue
 (:meth:`~vgpnav_env.perception.backbones.ClassicalConfig.fallback_config`). Only database images
 and poses are read; the result is cached beside the database's index, keyed by its fingerprint and
 the feature settings.
@@ -25,6 +25,8 @@ from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import binomtest
 
 from vgpnav_env.atomic import atomic_write
 from vgpnav_env.geometry import invert_pose, rotation_angle
@@ -44,49 +46,65 @@ logger = logging.getLogger(__name__)
 SAMPLE_FRAMES = 30
 #: A pair is right within this rotation and translation direction error (degrees).
 RIGHT_DEG = (5.0, 10.0)
+#: The sign test's level (the conventional one, not fitted): XFeat must win the pairs the two
+#: matchers disagree on by more than chance would at this level.
+SIGNIFICANCE = 0.05
 _CACHE_FILE = "feature_choice.json"
-_VERSION = 1
+_VERSION = 2
 
 
 @dataclass(frozen=True)
 class FeatureChoice:
     """The features the backbone uses on a database (``"rootsift"`` or ``"xfeat"``), with the
-    shares of its tested pairs each got right (``xfeat`` None when RootSIFT passed the test)."""
+    shares of its tested pairs each got right and the sign test's p-value (``xfeat`` and ``p``
+    None when RootSIFT passed the test)."""
 
     features: str
     rootsift: float
     xfeat: float | None
     n_pairs: int
+    p: float | None = None
 
     def describe(self) -> str:
-        """One line for reports, e.g. ``xfeat (database pairs right: RootSIFT 0.06, XFeat 0.18 of 147)``."""
+        """One line for reports, e.g. ``xfeat (database pairs right: RootSIFT 0.06, XFeat 0.18 of
+        147, p 0.0001)``."""
         shares = f"RootSIFT {self.rootsift:.2f}"
         if self.xfeat is not None:
             shares += f", XFeat {self.xfeat:.2f}"
-        return f"{self.features} (database pairs right: {shares} of {self.n_pairs})"
+        tested = "" if self.p is None else f", p {self.p:.2g}"
+        return f"{self.features} (database pairs right: {shares} of {self.n_pairs}{tested})"
 
 
-def pair_share(db: Database, config: ClassicalConfig, progress: bool = False) -> tuple[float, int]:
-    """The share of the tested database pairs (module docstring) the backbone with ``config`` gets
-    right, and the number of pairs (0 when the database has no overlapping views)."""
+def pair_outcomes(db: Database, config: ClassicalConfig, progress: bool = False) -> NDArray[np.bool_]:
+    """Whether the backbone with ``config`` gets each tested database pair right (module
+    docstring), in a fixed pair order (empty when the database has no overlapping views)."""
     from vgpnav_env.perception.database import prior_neighbours
 
     config = replace(config, fallback_pairs=0)
     backbone = ClassicalBackbone(config, db.features_for(config, progress=progress, every=False))
-    right = total = 0
+    right = []
     for j in np.unique(np.linspace(0, len(db) - 1, SAMPLE_FRAMES).round().astype(int)):
         fj = backbone.features(db.images[j], int(j))
         for i in prior_neighbours(db.poses, int(j), db.config):
             pair, _, _ = backbone.relative_pose(fj, backbone.features(db.images[i], int(i)), db.camera)
-            total += 1
             if pair is None:
+                right.append(False)
                 continue
             T_ij = invert_pose(db.poses[i]) @ db.poses[j]
             direction = T_ij[:3, 3] / max(float(np.linalg.norm(T_ij[:3, 3])), 1e-9)
             rotation = np.degrees(rotation_angle(pair.R, T_ij[:3, :3]))
             angle = np.degrees(np.arccos(np.clip(float(pair.t @ direction), -1.0, 1.0)))
-            right += int(rotation <= RIGHT_DEG[0] and angle <= RIGHT_DEG[1])
-    return (right / total if total else 0.0), total
+            right.append(bool(rotation <= RIGHT_DEG[0] and angle <= RIGHT_DEG[1]))
+    return np.array(right, bool)
+
+
+def sign_test(rootsift: NDArray[np.bool_], xfeat: NDArray[np.bool_]) -> float:
+    """One-sided p-value that XFeat gets more of the pairs right than RootSIFT by chance alone:
+    a binomial test on the pairs exactly one of them gets right (1 when there are none)."""
+    wins, losses = int((xfeat & ~rootsift).sum()), int((rootsift & ~xfeat).sum())
+    if wins + losses == 0:
+        return 1.0
+    return float(binomtest(wins, wins + losses, 0.5, alternative="greater").pvalue)
 
 
 def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -> dict[str, Any]:
@@ -95,7 +113,7 @@ def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -
         "version": _VERSION,
         "fingerprint": fingerprint,
         "sample": [SAMPLE_FRAMES, list(RIGHT_DEG), db_config.prior_baseline, db_config.prior_neighbours],
-        "switch": [config.switch_share, config.switch_gain],
+        "switch": [config.switch_share, SIGNIFICANCE],
         "rootsift": backbone_feature_settings(config) | {"max_error": config.max_epipolar_error},
         "xfeat": backbone_feature_settings(alternative) | {"max_error": alternative.xfeat_max_epipolar_error},
     }
@@ -122,7 +140,7 @@ def cached_choice(
 def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     """The features for a backbone with ``config`` on ``db`` (module docstring): RootSIFT unless it
     gets fewer than ``config.switch_share`` of the database's tested pairs right and XFeat +
-    LighterGlue ``config.switch_gain`` times as many. Cached in ``<database>/index/``."""
+    LighterGlue significantly more (:func:`sign_test`). Cached in ``<database>/index/``."""
     key = _key(db.fingerprint, db.config, config)
     path = db.path / "index" / _CACHE_FILE
     try:
@@ -131,13 +149,14 @@ def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
             return FeatureChoice(**stored["choice"])
     except (OSError, ValueError, TypeError, KeyError):
         pass
-    rootsift, n = pair_share(db, config)
-    xfeat = None
-    features = "rootsift"
-    if rootsift < config.switch_share:
-        xfeat, _ = pair_share(db, config.fallback_config())
-        features = "xfeat" if xfeat > 0 and xfeat >= config.switch_gain * rootsift else "rootsift"
-    choice = FeatureChoice(features, rootsift, xfeat, n)
+    rootsift = pair_outcomes(db, config)
+    share = float(rootsift.mean()) if len(rootsift) else 0.0
+    choice = FeatureChoice("rootsift", share, None, len(rootsift))
+    if share < config.switch_share and len(rootsift):
+        xfeat = pair_outcomes(db, config.fallback_config())
+        p = sign_test(rootsift, xfeat)
+        features = "xfeat" if p < SIGNIFICANCE else "rootsift"
+        choice = FeatureChoice(features, share, float(xfeat.mean()), len(rootsift), p)
     logger.info("features for %s: %s", db.path, choice.describe())
     text = json.dumps({"key": key, "choice": asdict(choice)}, indent=1)
     atomic_write(path, lambda f: f.write(text.encode()))

@@ -97,8 +97,8 @@ class ClassicalConfig:
     (:meth:`ClassicalConfig.fallback_config`; the references' XFeat features are extracted when
     first needed). Scene check (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only,
     with a database): where RootSIFT gets fewer than ``switch_share`` of the database's own
-    overlapping pairs right and XFeat + LighterGlue at least ``switch_gain`` times as many, every
-    pair is matched with XFeat + LighterGlue (``switch_share`` 0 = never). Planarity test with
+    overlapping pairs right and XFeat + LighterGlue significantly more, every pair is matched with
+    XFeat + LighterGlue (``switch_share`` 0 = never). Planarity test with
     ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
     keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
     log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
@@ -133,7 +133,6 @@ class ClassicalConfig:
     fallback_pairs: int = 4
     fallback_min_pairs: int = 3
     switch_share: float = 0.2
-    switch_gain: float = 2.0
     ransac_min_iterations: int = 200
     ransac_max_iterations: int = 2000
     min_inliers: int = 50
@@ -180,9 +179,8 @@ class ClassicalConfig:
             raise ValueError("matcher='lighterglue' matches XFeat features: set features='xfeat'")
         if self.fallback_pairs < 0 or self.fallback_min_pairs < 1:
             raise ValueError("need fallback_pairs >= 0 and fallback_min_pairs >= 1")
-        if not 0.0 <= self.switch_share <= 1.0 or not self.switch_gain >= 1.0:
-            got = f"{self.switch_share}, {self.switch_gain}"
-            raise ValueError(f"need switch_share in [0, 1] and switch_gain >= 1, got {got}")
+        if not 0.0 <= self.switch_share <= 1.0:
+            raise ValueError(f"switch_share must be in [0, 1], got {self.switch_share}")
         if self.xfeat_keypoints < 2 or self.xfeat_upscale <= 0 or self.xfeat_max_epipolar_error <= 0:
             raise ValueError("need xfeat_keypoints >= 2, xfeat_upscale > 0 and xfeat_max_epipolar_error > 0")
         if not 0.0 < self.ratio <= 1.0:
