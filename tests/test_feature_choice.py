@@ -44,11 +44,14 @@ def test_rootsift_stays_where_it_gets_the_database_pairs_right(database: Databas
     choice = choose_features(database, config)
     assert choice.features == "rootsift" and choice.xfeat is None
     assert 0.4 <= choice.rootsift <= 1.0 and choice.n_pairs >= 60  # measured 0.58 of 130
-    assert (database.path / "index" / "feature_choice.json").is_file()
+    assert len(list((database.path / "index").glob("feature_choice-*.json"))) == 1
     assert cached_choice(database.path, config) == choice
     asked = _outcomes(monkeypatch, [False] * 10, [True] * 10)
     assert choose_features(database, config) == choice and asked == []  # the cache, no matching
     assert cached_choice(database.path, ClassicalConfig(max_keypoints=500)) is None
+    # Other settings get their own file (here matched with the stubbed outcomes: XFeat wins 10 of 10).
+    other = choose_features(database, ClassicalConfig(threads=1, switch_share=0.9))
+    assert other.features == "xfeat" and cached_choice(database.path, config) == choice
     backbone = make_backbone("classical", database=database, threads=1)
     assert backbone.config.features == "rootsift" and backbone.config.uses_fallback
 

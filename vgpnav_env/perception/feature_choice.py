@@ -18,10 +18,12 @@ the feature settings.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
 from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -49,7 +51,6 @@ RIGHT_DEG = (5.0, 10.0)
 #: The sign test's level (the conventional one, not fitted): XFeat must win the pairs the two
 #: matchers disagree on by more than chance would at this level.
 SIGNIFICANCE = 0.05
-_CACHE_FILE = "feature_choice.json"
 _VERSION = 2
 
 
@@ -120,6 +121,12 @@ def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -
     return json.loads(json.dumps(key))
 
 
+def _cache_file(run_dir: Path, key: dict[str, Any]) -> Path:
+    """One file per key, so that runs with other settings on the same database keep their own."""
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    return run_dir / "index" / f"feature_choice-{digest}.json"
+
+
 def cached_choice(
     run_dir: str | os.PathLike, config: ClassicalConfig, db_config: DatabaseConfig | None = None
 ) -> FeatureChoice | None:
@@ -129,8 +136,9 @@ def cached_choice(
 
     path = database_run_dir(run_dir)
     try:
-        stored = json.loads((path / "index" / _CACHE_FILE).read_text())
-        if stored.get("key") == _key(run_fingerprint(path), db_config or DatabaseConfig(), config):
+        key = _key(run_fingerprint(path), db_config or DatabaseConfig(), config)
+        stored = json.loads(_cache_file(path, key).read_text())
+        if stored.get("key") == key:
             return FeatureChoice(**stored["choice"])
     except (OSError, ValueError, TypeError, KeyError):
         pass
@@ -142,7 +150,7 @@ def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     gets fewer than ``config.switch_share`` of the database's tested pairs right and XFeat +
     LighterGlue significantly more (:func:`sign_test`). Cached in ``<database>/index/``."""
     key = _key(db.fingerprint, db.config, config)
-    path = db.path / "index" / _CACHE_FILE
+    path = _cache_file(db.path, key)
     try:
         stored = json.loads(path.read_text())
         if stored.get("key") == key:
