@@ -553,7 +553,7 @@ def classical_settings(backbone: str | None, wrapper_kwargs: dict[str, Any]) -> 
 
     options = dict(wrapper_kwargs.get("backbone_options") or {})
     config = options.get("config") or ClassicalConfig(**options)
-    choice = cached_choice(wrapper_kwargs["database_dir"], config) if config.features == "rootsift" else None
+    choice = cached_choice(wrapper_kwargs["database_dir"], config) if config.checks_scene else None
     return {"features": classical_features(options, choice)}
 
 
@@ -590,7 +590,7 @@ def prepare_database(
 
             options = kwargs.get("backbone_options") or {}
             config = options.get("config") or ClassicalConfig(**options)
-            if config.features == "rootsift" and config.switch_share > 0:
+            if config.checks_scene:
                 choose_features(db, config)
     return kwargs
 

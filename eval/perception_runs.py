@@ -153,8 +153,8 @@ def add_backbone_arguments(parser: argparse.ArgumentParser) -> None:
         type=unit_interval_arg,
         metavar="S",
         help="classical backbone: match every pair with XFeat + LighterGlue where RootSIFT gets fewer "
-        "than S of the database's own overlapping pairs right and XFeat more; 0 = never "
-        "(default: ClassicalConfig's)",
+        "than S of the database's own overlapping pairs right and XFeat significantly more; "
+        "0 = never (default: ClassicalConfig's)",
     )
 
 
@@ -406,7 +406,7 @@ class QueryRun:
         if self.backbone != "classical":
             return None
         config = self.backbone_options.get("config") or ClassicalConfig(**self.backbone_options)
-        return cached_choice(self.build_dir, config) if config.features == "rootsift" else None
+        return cached_choice(self.build_dir, config) if config.checks_scene else None
 
     def settings(self) -> dict[str, Any]:
         """The report's settings: build, its scene's perception split (tuning or held-out,

@@ -52,7 +52,7 @@ def _classical(
     config = config or ClassicalConfig(**knobs)
     if database is None:
         return ClassicalBackbone(config)
-    if config.features == "rootsift" and config.switch_share > 0:
+    if config.checks_scene:
         from vgpnav_env.perception.feature_choice import choose_features
 
         if choose_features(database, config).features == "xfeat":

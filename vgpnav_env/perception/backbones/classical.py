@@ -165,6 +165,12 @@ class ClassicalConfig:
         """Whether the XFeat + LighterGlue fallback is on (``fallback_pairs`` > 0 with RootSIFT)."""
         return self.fallback_pairs > 0 and self.features == "rootsift"
 
+    @property
+    def checks_scene(self) -> bool:
+        """Whether the scene check may switch this backbone to XFeat + LighterGlue (RootSIFT
+        features and ``switch_share`` > 0; :mod:`~vgpnav_env.perception.feature_choice`)."""
+        return self.features == "rootsift" and self.switch_share > 0
+
     def fallback_config(self) -> ClassicalConfig:
         """The settings of the XFeat + LighterGlue fallback: this config with those features."""
         return replace(self, features="xfeat", matcher="lighterglue", fallback_pairs=0)
