@@ -127,6 +127,14 @@ def _cache_file(run_dir: Path, key: dict[str, Any]) -> Path:
     return run_dir / "index" / f"feature_choice-{digest}.json"
 
 
+def _stored(path: Path, key: dict[str, Any]) -> FeatureChoice | None:
+    try:
+        stored = json.loads(path.read_text())
+        return FeatureChoice(**stored["choice"]) if stored.get("key") == key else None
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+
+
 def cached_choice(
     run_dir: str | os.PathLike, config: ClassicalConfig, db_config: DatabaseConfig | None = None
 ) -> FeatureChoice | None:
@@ -137,12 +145,9 @@ def cached_choice(
     path = database_run_dir(run_dir)
     try:
         key = _key(run_fingerprint(path), db_config or DatabaseConfig(), config)
-        stored = json.loads(_cache_file(path, key).read_text())
-        if stored.get("key") == key:
-            return FeatureChoice(**stored["choice"])
-    except (OSError, ValueError, TypeError, KeyError):
-        pass
-    return None
+    except (OSError, ValueError):  # not a readable run
+        return None
+    return _stored(_cache_file(path, key), key)
 
 
 def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
@@ -151,12 +156,9 @@ def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     LighterGlue significantly more (:func:`sign_test`). Cached in ``<database>/index/``."""
     key = _key(db.fingerprint, db.config, config)
     path = _cache_file(db.path, key)
-    try:
-        stored = json.loads(path.read_text())
-        if stored.get("key") == key:
-            return FeatureChoice(**stored["choice"])
-    except (OSError, ValueError, TypeError, KeyError):
-        pass
+    stored = _stored(path, key)
+    if stored is not None:
+        return stored
     rootsift = pair_outcomes(db, config)
     share = float(rootsift.mean()) if len(rootsift) else 0.0
     choice = FeatureChoice("rootsift", share, None, len(rootsift))
