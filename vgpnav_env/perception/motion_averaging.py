@@ -13,6 +13,9 @@ Rotation: consensus by mutual angular consistency (the seed: the hypothesis whos
 hypotheses, at least ``min_consensus`` of them, have the largest total confidence),
 Gaussian-kernel weights times confidence, weighted quaternion mean. Translation: IRLS triangulation
 ``min_t sum_i Omega_i |(I - v_i v_i^T)(t - c_i)|^2``, ``Omega_i = w_rot w_geo w_res``.
+Once stage 4 has the metric scale, :func:`metric_centre` re-solves the centre with each pair's
+metric distance along its ray too: rays that are nearly parallel (references in a line with the
+query) fix the centre across them but not along them.
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ class MotionAveragingConfig:
     ``method="single"`` (ablation) takes the pose from one reference (``single_reference``:
     ``"first"`` = the first given, i.e. the best retrieval match; ``"confidence"`` = the most
     confident) and needs a scale for its translation (see :func:`average_motion`).
+    ``distance_sigma``: the relative noise of a pair's metric distance (the scale times its
+    backbone translation) against a ray's angular noise of ``rotation_sigma_deg``, both growing
+    with the distance (:func:`metric_centre`; None: the rays alone place the centre).
     """
 
     method: Literal["weighted", "single"] = "weighted"
@@ -50,6 +56,7 @@ class MotionAveragingConfig:
     min_rays: int = 2
     min_ray_angle_deg: float = 2.0
     single_reference: Literal["first", "confidence"] = "first"
+    distance_sigma: float | None = 0.1
 
     def __post_init__(self) -> None:
         if self.method not in AVERAGING_METHODS:
@@ -64,6 +71,8 @@ class MotionAveragingConfig:
             raise ValueError(
                 "consensus_deg, rotation_sigma_deg, robust_scale_m, inlier_residual_m must be > 0"
             )
+        if self.distance_sigma is not None and not self.distance_sigma > 0:
+            raise ValueError(f"distance_sigma must be > 0 or None, got {self.distance_sigma}")
         if self.min_rays < 2 or self.min_consensus < 1 or self.irls_iterations < 1:
             raise ValueError("need min_rays >= 2, min_consensus >= 1 and irls_iterations >= 1")
 
@@ -333,3 +342,42 @@ def average_motion(
     if scaled.any():
         result.scale_from_rays = _weighted_median(s[scaled] / baseline[scaled], omega[scaled])
     return result
+
+
+def metric_centre(
+    motion: MotionResult,
+    T_wi: ArrayLike,
+    T_iq: ArrayLike,
+    scale: float,
+    scale_valid: ArrayLike,
+    config: MotionAveragingConfig | None = None,
+) -> NDArray[np.float64]:
+    """``motion.T_wq`` with its centre re-solved from the rays and the pairs' metric distances:
+    ``min_t sum_i Omega_i (|(I - v_i v_i^T)(t - c_i)|^2 + lam (v_i^T (t - c_i) - d_i)^2)`` over the
+    references motion averaging kept (``motion.weights`` Omega_i > 0), ``d_i = scale |t_iq|``
+    (metres; only pairs marked in ``scale_valid``, the others constrain across their ray alone),
+    ``lam = (rotation_sigma_deg in rad / distance_sigma)^2``. ``T_wi`` (k, 4, 4) W <- reference,
+    ``T_iq`` (k, 4, 4) query -> reference in backbone units, ``scale`` metres per unit. The
+    rotation is kept; ``motion.T_wq`` is returned unchanged when the config has no
+    ``distance_sigma``, the scale is not finite and positive, or no kept pair has a distance."""
+    config = config or MotionAveragingConfig()
+    T_wq = np.asarray(motion.T_wq, float)
+    omega = np.asarray(motion.weights, float)
+    t_iq = np.asarray(T_iq, float)[:, :3, 3]
+    baseline = np.linalg.norm(t_iq, axis=1)
+    use = (omega > 0) & (baseline > 0)
+    metric = use & np.asarray(scale_valid, bool)
+    if config.distance_sigma is None or not (np.isfinite(scale) and scale > 0) or not metric.any():
+        return T_wq
+    T_wi = np.asarray(T_wi, float)
+    c = T_wi[use, :3, 3]
+    v = np.einsum("kij,kj->ki", T_wi[use, :3, :3], t_iq[use]) / baseline[use, None]
+    w = omega[use]
+    lam = np.where(metric[use], (np.deg2rad(config.rotation_sigma_deg) / config.distance_sigma) ** 2, 0.0)
+    d = scale * baseline[use]
+    outer = v[:, :, None] * v[:, None, :]
+    A = np.einsum("i,ijk->jk", w, np.eye(3)[None] - outer + lam[:, None, None] * outer)
+    b = np.einsum("i,ijk,ik->j", w, np.eye(3)[None] - outer, c) + np.einsum(
+        "i,ij->j", w * lam, v * (np.einsum("ij,ij->i", v, c) + d)[:, None]
+    )
+    return make_pose(T_wq[:3, :3], np.linalg.solve(A, b))

@@ -48,6 +48,7 @@ from vgpnav_env.perception.motion_averaging import (
     MotionAveragingConfig,
     MotionResult,
     average_motion,
+    metric_centre,
     pair_centre,
 )
 from vgpnav_env.perception.occupancy import OccupancyConfig, PointClasses
@@ -729,8 +730,14 @@ class Perceiver:
             anchor.initialize([(T_wc, None)], self.config.camera_height)
         if scale is None:
             scale, ground = self._ground_scale(loc, T_wc, anchor)
-        found = scale
+        found, cfg_avg = scale, self.config.averaging
         scale = plausible_scale(scale, self.median_depth(loc.backbone), self.config.verify)
+        if scale.ok and scale.source != "disabled" and not single:
+            # The pairs' metric distances place the centre along the rays too.
+            out, T_wi = loc.backbone, self.database.poses[loc.references]
+            T_wc = metric_centre(loc.motion, T_wi, out.T_iq, scale.scale, out.scale_valid, cfg_avg)
+            if provisional is not None:
+                provisional.initialize([(T_wc, None)], self.config.camera_height)
         z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")
         pose = MetricPose(T_wc, scale, ground, z_ground, provisional)
         if not found.ok and not single:
