@@ -10,8 +10,7 @@ taken from the rays (the averaged pose) and from
 :func:`~vgpnav_env.perception.motion_averaging.metric_centre` at each ``distance_sigma``, with stage
 4's scale: the ground peak scaled to the camera's height above a floor anchored under the first
 query frame, checked against the rays' own scale. The truth is read for evaluation only (and for
-the anchor). Columns: median centre error, share of
-frames within 2 cm and within 5 cm.
+the anchor). Columns: median centre error, share of frames within 2 cm and within 5 cm.
 """
 
 from __future__ import annotations

@@ -730,12 +730,12 @@ class Perceiver:
             anchor.initialize([(T_wc, None)], self.config.camera_height)
         if scale is None:
             scale, ground = self._ground_scale(loc, T_wc, anchor)
-        found, cfg_avg = scale, self.config.averaging
+        found = scale
         scale = plausible_scale(scale, self.median_depth(loc.backbone), self.config.verify)
         if scale.ok and scale.source != "disabled" and not single:
             # The pairs' metric distances place the centre along the rays too.
-            out, T_wi = loc.backbone, self.database.poses[loc.references]
-            T_wc = metric_centre(loc.motion, T_wi, out.T_iq, scale.scale, out.scale_valid, cfg_avg)
+            out, T_wi, averaging = loc.backbone, self.database.poses[loc.references], self.config.averaging
+            T_wc = metric_centre(loc.motion, T_wi, out.T_iq, scale.scale, out.scale_valid, averaging)
             if provisional is not None:
                 provisional.initialize([(T_wc, None)], self.config.camera_height)
         z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")
