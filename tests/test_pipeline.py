@@ -15,6 +15,8 @@ from scipy.spatial.transform import Rotation
 from tiny_build import QUERY_HEIGHT
 
 import vgpnav_env.perception.database as database_module
+import vgpnav_env.perception.motion_averaging as metric_module
+import vgpnav_env.perception.pipeline as pipeline_module
 import vgpnav_env.perception.recovery as recovery_module
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
@@ -204,6 +206,29 @@ def test_simulated_backbone_is_exact(database: Database, query) -> None:
     spec = perceiver.map.spec
     r, c = spec.world_to_cell(np.array([3.0, 3.5]))
     assert perceiver.map.occupied()[r - 3 : r + 4, c - 3 : c + 4].any()
+
+
+def test_stage_4_places_the_centre_by_metric_distances(
+    database: Database, query, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A pose motion averaging places over several references is the one
+    :func:`metric_centre` returns with the frame's metric scale (not the rays' alone)."""
+    placed: list[tuple[np.ndarray, float]] = []
+
+    def spy(motion, T_wi, T_iq, scale, scale_valid, config=None):
+        T = metric_module.metric_centre(motion, T_wi, T_iq, scale, scale_valid, config)
+        placed.append((T, scale))
+        return T
+
+    monkeypatch.setattr(pipeline_module, "metric_centre", spy)
+    run, _ = query
+    perceiver = Perceiver(database, "classical", config=PerceptionConfig.ablation(camera_height=QUERY_HEIGHT))
+    results = [perceiver.perceive(im) for im in run.images]
+    averaged = [r for r in results if r.localized and "single-pair" not in r.detail]
+    assert averaged and placed, [(r.status, r.reason, r.detail) for r in results]
+    assert all(np.isfinite(scale) and scale > 0 for _, scale in placed)
+    for r in averaged:
+        assert any(np.allclose(r.T_wc, T) for T, _ in placed), r.detail
 
 
 @pytest.mark.parametrize(("rerank", "n_good"), [(0, 3), (40, 1)])
