@@ -7,12 +7,13 @@ missing), each with the 10 database images the VLAD index finds most similar (wh
 retrieval starts from; some have no true overlap). Each method is the classical backbone's
 :meth:`~vgpnav_env.perception.backbones.classical.ClassicalBackbone.relative_pose` with one
 :class:`~vgpnav_env.perception.backbones.classical.ClassicalConfig` (features extracted once per
-image and method, not timed per pair). A pair passes when the backbone accepts it; a passed pair
-is right when its rotation is within 5 deg and its translation direction within 10 deg of the
-truth (the runs' poses, read here for evaluation only). Columns: passed right / wrong per pair,
-frames with at least 3 right pairs (enough for motion averaging), the median number of RANSAC
-inliers of right pairs, and CPU ms per pair (matching + two-view) and per image (extraction), one
-process.
+image and method, not timed per pair), given the pair's images as the pipeline does (XFeat matches
+are refined on them; ``xfeat-lg-unrefined`` without). A pair passes when the backbone accepts it;
+a passed pair is right when its rotation is within 5 deg and its translation direction within 10
+deg of the truth (the runs' poses, read here for evaluation only). Columns: passed right / wrong
+per pair, frames with at least 3 right pairs (enough for motion averaging), the median number of
+RANSAC inliers of right pairs, and CPU ms per pair (matching + two-view) and per image
+(extraction), one process.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ METHODS: dict[str, ClassicalConfig] = {
     "xfeat-lg": replace(BASE, features="xfeat", matcher="lighterglue"),
     "xfeat1024-lg-1.5px": replace(XFEAT_1024, matcher="lighterglue", xfeat_max_epipolar_error=1.5),
     "xfeat1024-x2-lg": replace(XFEAT_1024, matcher="lighterglue", xfeat_upscale=2.0),
+    "xfeat-lg-unrefined": replace(BASE, features="xfeat", matcher="lighterglue", refine_window=0),
 }
 
 
@@ -84,7 +86,8 @@ def main() -> None:
                 frame_right = 0
                 for i in refs:
                     t0 = time.process_time()
-                    pair, n_inliers, _ = backbone.relative_pose(fq, cache[int(i)], camera)
+                    images = (build.query.images[f], db.images[i])
+                    pair, n_inliers, _ = backbone.relative_pose(fq, cache[int(i)], camera, images=images)
                     pair_cpu += time.process_time() - t0
                     if pair is None:
                         continue

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from backbone_synthetic import render_corner
 
 from vgpnav_env.geometry import PinholeCamera, invert_pose, rotation_angle
 from vgpnav_env.perception.backbones import ClassicalBackbone, ClassicalConfig, FeatureCache, make_backbone
-from vgpnav_env.perception.backbones.classical import link_scales, match_descriptors, sampson_distance
+from vgpnav_env.perception.backbones.classical import (
+    link_scales,
+    match_descriptors,
+    refine_matches,
+    sampson_distance,
+)
 
 CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 K_REFS = 5
@@ -154,9 +160,9 @@ def test_a_second_call_on_the_same_query_reuses_its_features_and_pairs(scene, mo
     calls = []
     original = ClassicalBackbone.relative_pose
 
-    def counting(self, fq, fr, camera, expected_T_iq=None, matches=None):
+    def counting(self, fq, fr, camera, expected_T_iq=None, matches=None, images=None):
         calls.append(fr)
-        return original(self, fq, fr, camera, expected_T_iq, matches)
+        return original(self, fq, fr, camera, expected_T_iq, matches, images)
 
     monkeypatch.setattr(ClassicalBackbone, "relative_pose", counting)
     first = backbone(scene["query"], scene["refs"][:3], CAMERA, reference_keys=[0, 1, 2])
@@ -336,3 +342,26 @@ def test_a_pairs_dominant_plane_is_fitted_once(monkeypatch):
     assert len(fits) == 1 and again[40:].sum() >= 70  # the same mask, untouched by the edit above
     classical.dominant_plane(pq, pr, 1.0)  # another threshold is another fit
     assert len(fits) == 2
+
+
+def test_refined_matches_are_subpixel_correspondences():
+    """A texture and its copy shifted by (0.4, -0.3) px: matches one pixel off (as XFeat's
+    keypoints are) move to within 0.05 px of the true point; query points without texture around
+    them keep their match."""
+    rng = np.random.default_rng(0)
+    query = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 1.5)
+    query = np.clip(128 + (query - query.mean()) * 4, 0, 255).astype(np.uint8)
+    shift = np.array([0.4, -0.3])
+    reference = cv2.warpAffine(query, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), (160, 120))
+    grid = np.stack(np.meshgrid(np.arange(20, 140, 10), np.arange(20, 100, 10)), -1).reshape(-1, 2)
+    pq = grid.astype(float)
+    pr = np.round(pq + shift) + rng.choice([-1.0, 0.0, 1.0], size=pq.shape)
+    refined = refine_matches(query, reference, pq, pr, 9)
+    before = np.linalg.norm(pr - (pq + shift), axis=1)
+    after = np.linalg.norm(refined - (pq + shift), axis=1)
+    assert np.median(before) > 0.5 and np.median(after) < 0.05, (np.median(before), np.median(after))
+    flat = np.full_like(query, 128)
+    np.testing.assert_array_equal(refine_matches(flat, reference, pq, pr, 9), pr)
+    assert refine_matches(query, reference, pq[:0], pr[:0], 9).shape == (0, 2)
+    with pytest.raises(ValueError, match="refine_window"):
+        ClassicalConfig(refine_window=1)

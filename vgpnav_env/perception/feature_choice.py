@@ -87,7 +87,8 @@ def pair_outcomes(db: Database, config: ClassicalConfig, progress: bool = False)
     for j in np.unique(np.linspace(0, len(db) - 1, SAMPLE_FRAMES).round().astype(int)):
         fj = backbone.features(db.images[j], int(j))
         for i in prior_neighbours(db.poses, int(j), db.config):
-            pair, _, _ = backbone.relative_pose(fj, backbone.features(db.images[i], int(i)), db.camera)
+            fi = backbone.features(db.images[i], int(i))
+            pair, _, _ = backbone.relative_pose(fj, fi, db.camera, images=(db.images[j], db.images[i]))
             if pair is None:
                 right.append(False)
                 continue
@@ -116,7 +117,8 @@ def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -
         "sample": [SAMPLE_FRAMES, list(RIGHT_DEG), db_config.prior_baseline, db_config.prior_neighbours],
         "switch": [config.switch_share, SIGNIFICANCE],
         "rootsift": backbone_feature_settings(config) | {"max_error": config.max_epipolar_error},
-        "xfeat": backbone_feature_settings(alternative) | {"max_error": alternative.xfeat_max_epipolar_error},
+        "xfeat": backbone_feature_settings(alternative)
+        | {"max_error": alternative.xfeat_max_epipolar_error, "refine_window": alternative.refine_window},
     }
     return json.loads(json.dumps(key))
 

