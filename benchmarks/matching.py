@@ -86,8 +86,8 @@ def main() -> None:
                 frame_right = 0
                 for i in refs:
                     t0 = time.process_time()
-                    images = (build.query.images[f], db.images[i])
-                    pair, n_inliers, _ = backbone.relative_pose(fq, cache[int(i)], camera, images=images)
+                    pair_images = (build.query.images[f], db.images[i])
+                    pair, n_inliers, _ = backbone.relative_pose(fq, cache[int(i)], camera, images=pair_images)
                     pair_cpu += time.process_time() - t0
                     if pair is None:
                         continue
