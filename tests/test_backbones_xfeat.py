@@ -187,3 +187,22 @@ def test_xfeat_matches_are_refined_on_the_pair_images() -> None:
     refined_errors = _pair_errors(XFEAT_LG, room_corner(3))
     for column in (1, 2):  # rotation, translation direction (deg): 0.25 -> 0.16, 0.84 -> 0.69 here
         assert np.mean([e[column] for e in refined_errors]) <= np.mean([e[column] for e in raw_errors])
+
+
+def test_the_fallback_refines_its_matches_on_the_pair_images(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fallback's XFeat pairs get the query and the reference image (for ``refine_matches``)."""
+    query, _, refs, _, _ = render_corner(CAMERA, 5, seed=3)
+    seen: list[tuple[str, object]] = []
+    original = ClassicalBackbone.relative_pose
+
+    def spy(self, fq, fr, camera, expected_T_iq=None, matches=None, images=None):
+        seen.append((fq.kind, images))
+        return original(self, fq, fr, camera, expected_T_iq, matches, images)
+
+    monkeypatch.setattr(ClassicalBackbone, "relative_pose", spy)
+    grey = [np.full_like(query, 128 + i) for i in range(5)]  # RootSIFT finds nothing: the fallback runs
+    ClassicalBackbone(ClassicalConfig(threads=1, fallback_pairs=2))(query, grey, CAMERA)
+    xfeat = [images for kind, images in seen if kind == "xfeat"]
+    assert len(xfeat) == 2
+    for (q, r), expected in zip(xfeat, grey[:2], strict=True):
+        assert q is query and r is expected
