@@ -83,9 +83,10 @@ def test_shipped_task_splits_and_episode_files_agree() -> None:
     assert len(splits["train"]) >= 40 and {"home:1", "hospital:30"} <= set(splits["train"])
     assert {"home", "hospital", "corpus:sh3d_office", "corpus:sh3d_apartment"} <= set(splits["test"])
     tuning = set(perception_tuning_scenes())
-    # Perception is tuned on the built-ins, train seeds and a corpus scene of no navigation split:
+    # Perception is tuned on the built-ins, train seeds and corpus scenes of no navigation split:
     # nothing else of val / test.
-    assert "corpus:sh3d_studio" in tuning and not any("corpus:sh3d_studio" in s for s in splits.values())
+    real = {"corpus:sh3d_studio", "corpus:sh3d_bedsit", "corpus:sh3d_lounge"}
+    assert real <= tuning and not any(set(s) & real for s in splits.values())
     assert not tuning & set(splits["val"]) and tuning & set(splits["test"]) == {"home", "hospital"}
     assert perception_split("home") == "tuning" and perception_split("home-2") == "tuning"
     assert perception_split("corpus:sh3d_office") == "held-out" and perception_split("home:101") == "held-out"
