@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import importlib.util
 import json
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, default_model, fit_model
+from vgpnav_env.perception.verify import Evidence, VerificationModel, VerifyConfig, default_model, fit_model
 from vgpnav_env.perception.verify.model import FEATURES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -111,16 +111,18 @@ def test_the_model_round_trips_through_json(tmp_path: Path) -> None:
 
 def test_more_explained_evidence_is_more_probably_right() -> None:
     """The installed model ranks a pose that explains most matches, off its planes, with no rival,
-    above one that explains few, on one plane, with a rival as strong; it accepts the first only
-    (``accept_probability``)."""
+    above one that explains few, on one plane, with a rival as strong (both level); it accepts the
+    first only (``accept_probability``). A rolled camera lowers the probability."""
     model = default_model()
     good = dict(match_share=0.7, explained_share=0.95, agree_share=0.8, rival_margin=1.0,
-                off_plane_share=0.4, confident_rival=0.0, placed=0.0)  # fmt: skip
+                off_plane_share=0.4, confident_rival=0.0, placed=0.0, abs_roll_deg=0.1)  # fmt: skip
     bad = dict(match_share=0.2, explained_share=0.3, agree_share=0.2, rival_margin=0.0,
-               off_plane_share=0.02, confident_rival=1.0, placed=0.0)  # fmt: skip
+               off_plane_share=0.02, confident_rival=1.0, placed=0.0, abs_roll_deg=0.1)  # fmt: skip
     p_good, p_bad = model.probabilities(np.array([[good[f] for f in FEATURES], [bad[f] for f in FEATURES]]))
     accept = VerifyConfig().accept_probability
     assert p_good >= accept > p_bad
+    rolled = [{**good, "abs_roll_deg": 2.0}[f] for f in FEATURES]
+    assert model.probabilities(np.array([rolled]))[0] < accept
 
 
 def test_fit_refuses_held_out_frames(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -137,9 +139,10 @@ def test_fit_refuses_held_out_frames(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert script.main(["score", str(path)]) == 0  # held-out frames may be scored
     report = tmp_path / "run" / "report.json"
     report.parent.mkdir()
-    evidence = {f: 0.5 for f in FEATURES}
+    evidence = {f.name: 0.5 for f in fields(Evidence)} | {"roll_deg": -0.5}
     record = dict(frame=0, status="localized", evidence=evidence, gate="", candidate_translation_m=0.01,
                   candidate_rotation_deg=0.2)  # fmt: skip
     report.write_text(json.dumps({"settings": {"scene": "/data/my_scan"}, "records": [record]}))
     (row,) = script.collect([tmp_path / "run"])
     assert row["scene"] == "my_scan" and row["split"] == "held-out" and row["right"] == 1
+    assert row["abs_roll_deg"] == 0.5  # a property of the evidence: the roll either way

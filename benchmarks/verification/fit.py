@@ -1,20 +1,17 @@
 """Fit the calibrated verification model (``vgpnav_env.perception.verify.model``) on logged frames.
 
 Data: the frame records of ``vgpnav eval localization`` reports on the TUNING scenes only
-(``vgpnav_env/tasks/splits.yaml``), temporal mode, all query frames::
-
-    vgpnav eval localization home hospital home:1 home:2 home:3 hospital:1 hospital:2 hospital:3 \\
-        --backbone classical --queries 0 --perception-mode temporal --k 10 --workers 1 --out OUT
-
-Then, from this directory's parent::
+(``vgpnav_env/tasks/splits.yaml``), temporal and paper mode, all query frames (the commands are in
+this directory's ``README.md``). Then, from this directory's parent::
 
     python benchmarks/verification/fit.py collect OUT -o benchmarks/verification/frames.csv
     python benchmarks/verification/fit.py fit benchmarks/verification/frames.csv \\
         -o vgpnav_env/perception/data/verify_model.json
 
-``collect`` keeps every frame whose candidate pose has evidence and an error (not mount rejections:
-the mount stays a rule); a row's label is "right" (within 5 cm / 5 deg), its ``split`` the report's
-perception split. ``fit`` refuses held-out rows (exit code 2) and is deterministic
+``collect`` keeps every frame whose candidate pose has evidence and an error, mount rejections
+included (the model scores every candidate the reports rank; the mount rule still rejects what
+it rejects); a row's label is "right" (within 5 cm / 5 deg), its ``split`` the report's perception
+split. ``fit`` refuses held-out rows (exit code 2) and is deterministic
 (L-BFGS from zero, :func:`~vgpnav_env.perception.verify.model.fit_model`) and prints the training
 AUC and, per scene, what the model would accept at ``VerifyConfig.accept_probability`` against
 what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every coefficient agrees
@@ -33,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vgpnav_env.perception.verify import VerificationModel, VerifyConfig, default_model, fit_model
+from vgpnav_env.perception.verify import Evidence, VerificationModel, VerifyConfig, default_model, fit_model
 from vgpnav_env.perception.verify.model import FEATURES
 from vgpnav_env.tasks.splits import perception_split
 
@@ -57,7 +54,7 @@ def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
             for r in report.get("records", []):
                 ev = r.get("evidence") or {}
                 t, deg = r["candidate_translation_m"], r["candidate_rotation_deg"]
-                if not ev or r.get("gate") == "unverified: mount" or t is None or deg is None:
+                if not ev or t is None or deg is None:
                     continue
                 if not (np.isfinite(t) and np.isfinite(deg)):
                     continue
@@ -65,7 +62,8 @@ def collect(report_dirs: list[Path]) -> list[dict[str, object]]:
                 gross = t > 0.5 or deg > 10.0
                 row = {"scene": scene, "split": split, "frame": r["frame"], "status": r["status"]}
                 row |= {"right": int(right)}
-                row |= {"gross": int(gross)} | {f: float(ev[f]) for f in FEATURES}
+                evidence = Evidence(**ev)
+                row |= {"gross": int(gross)} | {f: float(getattr(evidence, f)) for f in FEATURES}
                 rows.append(row)
     return rows
 
@@ -99,7 +97,7 @@ def auc(score: np.ndarray, positive: np.ndarray) -> float:
 
 
 def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
-    X = np.array([[float(r[f]) for f in FEATURES] for r in rows])
+    X = np.array([[float(r[f]) for f in model.features] for r in rows])
     p = model.probabilities(X)
     right = np.array([int(r["right"]) for r in rows], bool)
     gross = np.array([int(r["gross"]) for r in rows], bool)
@@ -108,7 +106,8 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
     lines = [
         f"rows {len(rows)}, right {int(right.sum())}, gross {int(gross.sum())}; "
         f"AUC right vs not {auc(p, right):.3f}, "
-        f"right vs gross {auc(p[right | gross], right[right | gross]):.3f}",
+        f"right vs gross {auc(p[right | gross], right[right | gross]):.3f}, "
+        f"not gross vs gross (the reports' confidence AUC) {auc(p, ~gross):.3f}",
         "| scene | rows | rules: accepted / gross / right | model: accepted / gross / right |",
         "|---|---|---|---|",
     ]

@@ -24,8 +24,9 @@ from scipy.special import expit
 if TYPE_CHECKING:
     from vgpnav_env.perception.verify.verdict import Evidence
 
-#: The evidence fields the model reads: shares and ratios of match counts, independent of the image
-#: size and the feature budget, and whether the pose lies inside a state estimate's prior.
+#: The evidence the model reads: shares and ratios of match counts, independent of the image size
+#: and the feature budget, whether the pose lies inside a state estimate's prior, and the mount's
+#: roll (a wrong pose is seldom level; the mount rule still rejects a roll past ``max_roll_deg``).
 FEATURES: tuple[str, ...] = (
     "match_share",
     "explained_share",
@@ -34,6 +35,7 @@ FEATURES: tuple[str, ...] = (
     "off_plane_share",
     "confident_rival",
     "placed",
+    "abs_roll_deg",
 )
 #: The package data file of the fitted model.
 MODEL_FILE = "verify_model.json"
@@ -42,7 +44,8 @@ MODEL_FILE = "verify_model.json"
 @dataclass(frozen=True)
 class VerificationModel:
     """``P(right | evidence) = expit(intercept + coef . (x - mean) / scale)`` over ``features``
-    (field names of :class:`Evidence`); ``meta``: how it was fitted (data, sizes, regularisation)."""
+    (field or property names of :class:`Evidence`); ``meta``: how it was fitted (data, sizes,
+    regularisation)."""
 
     features: tuple[str, ...]
     mean: tuple[float, ...]

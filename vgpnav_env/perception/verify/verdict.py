@@ -42,7 +42,8 @@ class Evidence:
     strongest distinct rival's ``r`` (1 without a rival); ``off_plane_share``: the matches off its
     dominant plane of the pose's best reference, over that reference's explained matches;
     ``confident_rival``: a distinct rival has a pair as confident as the pose's best (0 / 1);
-    ``roll_deg`` / ``height_off_m``: the mount; ``placed``: inside a state estimate's prior (0 / 1).
+    ``roll_deg`` / ``height_off_m``: the mount (:attr:`abs_roll_deg` its roll either way);
+    ``placed``: inside a state estimate's prior (0 / 1).
     The counts behind them (``strength``, ``rival_strength``, ``off_plane``, ``n_matches``,
     ``n_supporting``, ``n_pairs``) are kept for analysis, not for the model.
     """
@@ -62,6 +63,11 @@ class Evidence:
     n_matches: int
     n_supporting: int
     n_pairs: int
+
+    @property
+    def abs_roll_deg(self) -> float:
+        """How far the camera is rolled off level, either way (degrees)."""
+        return abs(self.roll_deg)
 
     @classmethod
     def of(
