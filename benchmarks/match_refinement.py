@@ -1,6 +1,7 @@
 """XFeat + LighterGlue matches refined by Lucas-Kanade: correspondence error and two-view poses.
 
     python benchmarks/match_refinement.py BUILD [--frames 40] [--windows 7 9 11] [--features xfeat]
+        [--errors 0.5 1.0]
 
 Pairs: ``--frames`` evenly spaced query frames of a build, each with the 10 database images the
 VLAD index finds most similar. For every pair the backbone's putative matches are taken as they
@@ -14,7 +15,8 @@ are (window 0) and with their reference points refined by
 - poses: poselib's 5-point LO-RANSAC on the matches as the backbone runs it (its Sampson bound and
   iteration limits); accepted = at least ``min_inliers`` inliers; right = rotation within 5 deg and
   translation direction within 10 deg of the truth; tight = within 2 deg and 5 deg; the median
-  rotation and direction errors of the accepted pairs;
+  rotation and direction errors of the accepted pairs; ``--errors``: the Sampson bounds (pixels)
+  to run RANSAC with, one row each (default: the backbone's for the features);
 - CPU ms per pair of the refinement (one thread).
 """
 
@@ -48,11 +50,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--windows", type=int, nargs="+", default=[7, 9, 11])
     parser.add_argument("--features", choices=["xfeat", "rootsift"], default="xfeat")
+    parser.add_argument("--errors", type=float, nargs="+", help="Sampson bounds (px), one row each")
     args = parser.parse_args()
     configure_threads(1)
     config = ClassicalConfig(threads=1, fallback_pairs=0)
     if args.features == "xfeat":
         config = replace(config, features="xfeat", matcher="lighterglue")
+    default = config.xfeat_max_epipolar_error if args.features == "xfeat" else config.max_epipolar_error
+    bounds = args.errors or [default]
     backbone = ClassicalBackbone(config)
     build = load_build(args.build)
     db = open_database(args.build, DatabaseConfig(prior="none"))
@@ -61,8 +66,9 @@ def main() -> None:
     depth = load_run_depth(args.build / "query")
     frames = np.unique(np.linspace(0, len(build.query) - 1, args.frames).round().astype(int))
     windows = [0, *args.windows]
+    rows = [(w, b) for w in windows for b in bounds]
     errors: dict[int, list[float]] = {w: [] for w in windows}
-    poses: dict[int, list[tuple[int, float, float]]] = {w: [] for w in windows}
+    poses: dict[tuple[int, float], list[tuple[int, float, float]]] = {row: [] for row in rows}
     cpu = dict.fromkeys(windows, 0.0)
     cache: dict[int, object] = {}
     for f in frames:
@@ -87,33 +93,34 @@ def main() -> None:
                 moved = refine_matches(query, db.images[i], pq, pr, w) if w else pr
                 cpu[w] += time.process_time() - t0
                 errors[w] += list(np.linalg.norm(moved - truth, axis=1)[correct])
-                options = {
-                    "max_epipolar_error": backbone.epipolar_error(fq),
-                    "min_iterations": config.ransac_min_iterations,
-                    "max_iterations": config.ransac_max_iterations,
-                }
-                pose, info = poselib.estimate_relative_pose(pq, moved, cam, cam, options, {})
-                t = np.asarray(pose.t) / max(np.linalg.norm(pose.t), 1e-12)
-                poses[w].append(
-                    (
-                        int(np.sum(info["inliers"])),
-                        float(np.degrees(rotation_angle(np.asarray(pose.R), T_rq[:3, :3]))),
-                        float(np.degrees(np.arccos(np.clip(t @ direction, -1.0, 1.0)))),
+                for b in bounds:
+                    options = {
+                        "max_epipolar_error": b,
+                        "min_iterations": config.ransac_min_iterations,
+                        "max_iterations": config.ransac_max_iterations,
+                    }
+                    pose, info = poselib.estimate_relative_pose(pq, moved, cam, cam, options, {})
+                    t = np.asarray(pose.t) / max(np.linalg.norm(pose.t), 1e-12)
+                    poses[w, b].append(
+                        (
+                            int(np.sum(info["inliers"])),
+                            float(np.degrees(rotation_angle(np.asarray(pose.R), T_rq[:3, :3]))),
+                            float(np.degrees(np.arccos(np.clip(t @ direction, -1.0, 1.0)))),
+                        )
                     )
-                )
-    print(f"{args.build.name}, {args.features}, {len(frames)} frames, {len(poses[0])} pairs\n")
+    print(f"{args.build.name}, {args.features}, {len(frames)} frames, {len(poses[rows[0]])} pairs\n")
     print(
-        "| window | correspondence error median / p90 (px) | accepted | right | tight "
+        "| window | Sampson bound (px) | correspondence error median / p90 (px) | accepted | right | tight "
         "| rotation / direction error (deg) | CPU ms / pair |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    for w in windows:
-        e, p = np.array(errors[w]), np.array(poses[w])
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for w, b in rows:
+        e, p = np.array(errors[w]), np.array(poses[w, b])
         accepted = p[:, 0] >= config.min_inliers
         right = accepted & (p[:, 1] <= 5.0) & (p[:, 2] <= 10.0)
         tight = accepted & (p[:, 1] <= 2.0) & (p[:, 2] <= 5.0)
         print(
-            f"| {w or 'none'} | {np.median(e):.2f} / {np.percentile(e, 90):.2f} | {accepted.sum()} "
+            f"| {w or 'none'} | {b:g} | {np.median(e):.2f} / {np.percentile(e, 90):.2f} | {accepted.sum()} "
             f"| {right.sum()} | {tight.sum()} "
             f"| {np.median(p[accepted, 1]):.2f} / {np.median(p[accepted, 2]):.2f} "
             f"| {1000 * cpu[w] / len(p):.1f} |"
