@@ -6,9 +6,10 @@ grouped by how the pose came to be.
 Reads every ``report.json`` below the given directories (``vgpnav eval localization`` reports) and
 prints, over their localized frames pooled, the median translation and rotation errors and the
 recall at 5 cm / 5 deg per group: the metric scale's source (``ground``: the ground peak;
-``fallback``: the rays' implied scale), the number of confident reference pairs, and whether the
-pose was placed inside the state estimate's prior (``prior_placed``: accepted on less evidence of
-the images). A group with a low recall is where the next accuracy is.
+``fallback``: the rays' implied scale), the number of confident reference pairs (1-2, 3-5, 6 or
+more), and whether the pose was placed inside the state estimate's prior (``prior_placed``:
+accepted on less evidence of the images); then the correlation of the translation and rotation
+errors. A group with a low recall is where the next accuracy is.
 """
 
 from __future__ import annotations
@@ -21,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from vgpnav_env.eval.perception_runs import RECALL_THRESHOLDS
+
 #: A frame is right within these (metres, degrees): the reports' recall threshold.
-RIGHT = (0.05, 5.0)
+RIGHT = RECALL_THRESHOLDS["recall_5cm_5deg"]
 
 
 def localized_records(dirs: list[Path]) -> list[dict]:
@@ -57,10 +60,18 @@ def main() -> None:
     print(f"{len(records)} localized frames\n")
     for name, group in (
         ("scale source", lambda r: r["scale_source"]),
-        ("confident pairs", lambda r: r["n_confident_pairs"] if r["n_confident_pairs"] < 6 else ">= 6"),
+        (
+            "confident pairs",
+            lambda r: (
+                "1-2" if r["n_confident_pairs"] <= 2 else "3-5" if r["n_confident_pairs"] <= 5 else ">= 6"
+            ),
+        ),
         ("prior placed", lambda r: r["prior_placed"]),
     ):
         print(table(records, name, group) + "\n")
+    t = [r["translation_m"] for r in records]
+    deg = [r["rotation_deg"] for r in records]
+    print(f"correlation of the translation and rotation errors: {np.corrcoef(t, deg)[0, 1]:.2f}")
 
 
 if __name__ == "__main__":

@@ -146,3 +146,20 @@ def test_fit_refuses_held_out_frames(tmp_path: Path, capsys: pytest.CaptureFixtu
     (row,) = script.collect([tmp_path / "run"])
     assert row["scene"] == "my_scan" and row["split"] == "held-out" and row["right"] == 1
     assert row["abs_roll_deg"] == 0.5  # a property of the evidence: the roll either way
+
+
+def test_fit_and_scenes_take_a_subset_of_the_features(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``--features`` fits on those features only (the ablations of benchmarks/verification/README.md):
+    the written model reads exactly them, and leaving scenes out works with them."""
+    script = _fit_script()
+    rows = [r for r in script.read_rows(DATA) if r["scene"] in ("home", "hospital")]
+    path, model = tmp_path / "two.csv", tmp_path / "m.json"
+    script.write_rows(path, rows)
+    base = [f for f in FEATURES if f != "abs_roll_deg"]
+    assert script.main(["fit", str(path), "--features", *base, "-o", str(model)]) == 0
+    assert VerificationModel.load(model).features == tuple(base)
+    capsys.readouterr()
+    assert script.main(["scenes", str(path), "--features", *base]) == 0
+    assert capsys.readouterr().out.startswith("leave one scene out")
+    with pytest.raises(SystemExit):
+        script.main(["fit", str(path), "--features", "no_such_feature"])

@@ -18,6 +18,7 @@ what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every c
 with MODEL's within ``--tolerance``. ``score FRAMES [--model MODEL]`` prints a model's AUC and
 decisions on other frames (held-out scenes' records, collected the same way) without fitting.
 ``scenes FRAMES`` leaves one scene out at a time: the AUC of a fit on the others, per scene.
+``fit`` and ``scenes`` take ``--features`` to fit on some of the model's features only.
 """
 
 from __future__ import annotations
@@ -81,11 +82,12 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def fit(rows: list[dict[str, str]]) -> VerificationModel:
-    X = np.array([[float(r[f]) for f in FEATURES] for r in rows])
+def fit(rows: list[dict[str, str]], features: tuple[str, ...] = FEATURES) -> VerificationModel:
+    """The model of ``features`` (default: the package's) fitted on ``rows``."""
+    X = np.array([[float(r[f]) for f in features] for r in rows])
     y = np.array([int(r["right"]) for r in rows], bool)
     scenes = sorted({r["scene"] for r in rows})
-    return fit_model(X, y, FEATURES, l2=L2, meta={"scenes": scenes, "right_m_deg": list(RIGHT)})
+    return fit_model(X, y, features, l2=L2, meta={"scenes": scenes, "right_m_deg": list(RIGHT)})
 
 
 def auc(score: np.ndarray, positive: np.ndarray) -> float:
@@ -121,12 +123,12 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
     return "\n".join(lines)
 
 
-def leave_one_scene_out(rows: list[dict[str, str]]) -> str:
+def leave_one_scene_out(rows: list[dict[str, str]], features: tuple[str, ...] = FEATURES) -> str:
     """Leave one scene out: per scene, the AUC (right against gross) of the model fitted on the other
     scenes' rows, and the pooled AUC of those out-of-scene probabilities (how well a fit carries to a
-    scene it has not seen)."""
+    scene it has not seen), for a model of ``features``."""
     scenes = sorted({r["scene"] for r in rows})
-    X = np.array([[float(r[f]) for f in FEATURES] for r in rows])
+    X = np.array([[float(r[f]) for f in features] for r in rows])
     right = np.array([int(r["right"]) for r in rows], bool)
     gross = np.array([int(r["gross"]) for r in rows], bool)
     p = np.full(len(rows), np.nan)
@@ -134,7 +136,7 @@ def leave_one_scene_out(rows: list[dict[str, str]]) -> str:
     per_scene = []
     for scene in scenes:
         out = np.array([r["scene"] == scene for r in rows])
-        p[out] = fit([r for r, o in zip(rows, out, strict=True) if not o]).probabilities(X[out])
+        p[out] = fit([r for r, o in zip(rows, out, strict=True) if not o], features).probabilities(X[out])
         pair = out & (right | gross)
         per_scene.append(auc(p[pair], right[pair]))
         lines.append(f"| {scene} | {int(out.sum())} | {int((out & gross).sum())} | {per_scene[-1]:.3f} |")
@@ -155,11 +157,14 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("-o", "--out", type=Path)
     f.add_argument("--check", type=Path, metavar="MODEL", help="compare with MODEL instead of writing")
     f.add_argument("--tolerance", type=float, default=1e-4)
+    features = {"nargs": "+", "choices": FEATURES, "default": FEATURES, "metavar": "FEATURE"}
+    f.add_argument("--features", **features, help="fit on these features only (ablations)")
     s = sub.add_parser("score", help="a model's AUC and decisions on a frames CSV (e.g. held-out scenes)")
     s.add_argument("frames", type=Path)
     s.add_argument("--model", type=Path, help="model JSON (default: the installed model)")
     v = sub.add_parser("scenes", help="leave one scene out: how a fit carries to an unseen scene")
     v.add_argument("frames", type=Path)
+    v.add_argument("--features", **features, help="fit on these features only (ablations)")
     args = parser.parse_args(argv)
     if args.command == "collect":
         rows = collect(args.reports)
@@ -174,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         if len({r["scene"] for r in rows}) < 2:
             print(f"{args.frames} holds one scene: nothing to leave out", file=sys.stderr)
             return 2
-        print(leave_one_scene_out(rows))
+        print(leave_one_scene_out(rows, tuple(args.features)))
         return 0
     if args.command == "score":
         try:
@@ -195,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    model = fit(rows)
+    model = fit(rows, tuple(args.features))
     print(summary(model, rows))
     if args.check is not None:
         stored = VerificationModel.load(args.check)
