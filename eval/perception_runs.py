@@ -597,7 +597,7 @@ def _temporal_task(
     high = np.append(truth[:, :2].max(0), np.pi) + margin
     ekf = EKFState(low, high)
     ekf.reset(query.images[frames[0]], fallback=(0.5 * (low + high))[:2].tolist() + [0.0])
-    vo = VisualOdometry(query.camera, height, pitch) if visual_odometry else None
+    vo = VisualOdometry(perceiver.camera, height, pitch) if visual_odometry else None
     if vo is not None:
         vo.reset(query.images[frames[0]])
     out = []

@@ -66,10 +66,11 @@ from vgpnav_env.perception.backbones.stereo import SweepConfig
 from vgpnav_env.perception.backbones.threads import configure_threads, cpu_share, thread_map
 from vgpnav_env.perception.occupancy import LogOddsMap, OccupancyConfig
 from vgpnav_env.perception.points import depth_points
+from vgpnav_env.perception.resolution import MAX_WIDTH, downscale, working_camera, working_size
 from vgpnav_env.perception.retrieval import VladConfig, VladIndex, nearby_cameras
 from vgpnav_env.perception.scale_recovery import ground_peak
 from vgpnav_env.robot import CAMERA_HEIGHT
-from vgpnav_env.runs import Run, RunFormatError, load_run, run_fingerprint
+from vgpnav_env.runs import Run, RunFormatError, load_run, read_run_meta, run_fingerprint
 
 logger = logging.getLogger(__name__)
 
@@ -107,6 +108,9 @@ class DatabaseConfig:
     them on disk (else they are extracted on first use); ``feature_cache_size`` decoded
     (RootSIFT, float32) images are kept in memory. ``prior_sweep``: the plane sweep the prior's
     frames are reconstructed with (the map's resolution, not the backbone's coarser default).
+    ``max_width``: images wider than this many pixels are area-downscaled to it, database and
+    queries alike (:mod:`~vgpnav_env.perception.resolution`; None: every image at its own size);
+    the caches of a downscaled database live in ``index-WxH/`` beside the run's ``index/``.
     """
 
     vlad: VladConfig = field(default_factory=VladConfig)
@@ -126,8 +130,11 @@ class DatabaseConfig:
     feature_cache_size: int = 64
     store_features: bool = True
     prior_sweep: SweepConfig = field(default_factory=SweepConfig)
+    max_width: int | None = MAX_WIDTH
 
     def __post_init__(self) -> None:
+        if self.max_width is not None and self.max_width < 16:
+            raise ValueError(f"max_width must be >= 16 pixels or None, got {self.max_width}")
         if self.prior not in ("database", "none"):
             raise ValueError(f"prior must be 'database' or 'none', got {self.prior!r}")
         if self.map_resolution <= 0 or self.map_margin < 0:
@@ -350,7 +357,9 @@ class Database:
     ``timings`` how long the features, index and prior took to load or compute (wall seconds;
     ``<step>_cpu``: the process's CPU seconds, all threads). ``feature_cache`` holds the backbone's
     features (of kind ``feature_kind``); retrieval's RootSIFT of references live there too when the
-    backbone's features are RootSIFT, else in ``retrieval_cache``.
+    backbone's features are RootSIFT, else in ``retrieval_cache``. ``run`` holds the images at the
+    size perception works at (``config.max_width``); ``cache_dir`` the caches of that size
+    (:func:`index_dir`).
     """
 
     path: Path
@@ -360,6 +369,7 @@ class Database:
     config: DatabaseConfig
     map_spec: GridSpec
     feature_cache: FeatureCache
+    cache_dir: Path
     prior: LogOddsMap | None = None
     z_ground: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
@@ -403,7 +413,7 @@ class Database:
             stored = isinstance(store, StoredFeatures)
             if store is None or (every and self.config.store_features and not stored):
                 store = _open_features(
-                    self.path / "index", self.run, self.fingerprint, self.config, config, progress, every
+                    self.cache_dir, self.run, self.fingerprint, self.config, config, progress, every
                 )
                 self.other_features[config.features] = store
         if isinstance(store, StoredFeatures) and store.settings != feature_settings(config):
@@ -459,8 +469,9 @@ class Database:
         if run.metadata.get("kind") not in (None, "database"):
             raise RunFormatError(f"{path}: is a {run.metadata.get('kind')!r} run, expected a database run")
         fingerprint = run_fingerprint(path)
-        cache = path / "index"
+        cache = index_dir(path, config)
         cache.mkdir(exist_ok=True)
+        run = _working_run(run, config.max_width)
         timings: dict[str, float] = {}
 
         xy = run.positions[:, :2]
@@ -504,6 +515,7 @@ class Database:
             config,
             spec,
             feature_cache,
+            cache,
             timings=timings,
             feature_kind=backbone_config.features,
         )
@@ -579,6 +591,26 @@ def _open_features(
         store = StoredFeatures.extract(run.images, backbone, config.feature_cache_size, progress=progress)
         store.save(cache, fingerprint)
     return store
+
+
+def _working_run(run: Run, max_width: int | None) -> Run:
+    """``run`` with its images at the size perception works at (:func:`working_camera`)."""
+    camera = working_camera(run.camera, max_width)
+    if camera == run.camera:
+        return run
+    images = np.stack([downscale(image, camera) for image in run.images])
+    return Run(images, run.poses, camera, run.metadata | {"width": camera.width, "height": camera.height})
+
+
+def index_dir(run_dir: str | os.PathLike, config: DatabaseConfig | None = None) -> Path:
+    """The cache directory of the database run at ``run_dir`` (or a build's ``database/``) opened
+    with ``config``: ``index/`` when perception works at the images' own size, else
+    ``index-WxH/`` (W x H the size they are downscaled to, ``DatabaseConfig.max_width``)."""
+    path = database_run_dir(run_dir)
+    meta = read_run_meta(path)
+    width, height = int(meta["width"]), int(meta["height"])
+    size = working_size(width, height, (config or DatabaseConfig()).max_width)
+    return path / ("index" if size == (width, height) else f"index-{size[0]}x{size[1]}")
 
 
 def database_run_dir(path: str | os.PathLike) -> Path:

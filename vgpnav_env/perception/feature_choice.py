@@ -123,10 +123,10 @@ def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -
     return json.loads(json.dumps(key))
 
 
-def _cache_file(run_dir: Path, key: dict[str, Any]) -> Path:
+def _cache_file(cache_dir: Path, key: dict[str, Any]) -> Path:
     """One file per key, so that runs with other settings on the same database keep their own."""
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
-    return run_dir / "index" / f"feature_choice-{digest}.json"
+    return cache_dir / f"feature_choice-{digest}.json"
 
 
 def _stored(path: Path, key: dict[str, Any]) -> FeatureChoice | None:
@@ -142,22 +142,24 @@ def cached_choice(
 ) -> FeatureChoice | None:
     """The choice :func:`choose_features` stored for the database run at ``run_dir`` (or a build's
     ``database/``) with these settings; None when it has not been made (or the run changed)."""
-    from vgpnav_env.perception.database import DatabaseConfig, database_run_dir
+    from vgpnav_env.perception.database import DatabaseConfig, database_run_dir, index_dir
 
     path = database_run_dir(run_dir)
+    db_config = db_config or DatabaseConfig()
     try:
-        key = _key(run_fingerprint(path), db_config or DatabaseConfig(), config)
+        key = _key(run_fingerprint(path), db_config, config)
+        cache = index_dir(path, db_config)
     except (OSError, ValueError):  # not a readable run
         return None
-    return _stored(_cache_file(path, key), key)
+    return _stored(_cache_file(cache, key), key)
 
 
 def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     """The features for a backbone with ``config`` on ``db`` (module docstring): RootSIFT unless it
     gets fewer than ``config.switch_share`` of the database's tested pairs right and XFeat +
-    LighterGlue significantly more (:func:`sign_test`). Cached in ``<database>/index/``."""
+    LighterGlue significantly more (:func:`sign_test`). Cached in the database's ``cache_dir``."""
     key = _key(db.fingerprint, db.config, config)
-    path = _cache_file(db.path, key)
+    path = _cache_file(db.cache_dir, key)
     stored = _stored(path, key)
     if stored is not None:
         return stored

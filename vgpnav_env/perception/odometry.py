@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from vgpnav_env.geometry import PinholeCamera, wrap_angle
 from vgpnav_env.perception.backbones.classical import ClassicalBackbone, Features, rootsift
+from vgpnav_env.perception.resolution import downscale
 from vgpnav_env.robot import camera_T_wc
 
 
@@ -54,8 +55,9 @@ class VisualMotion:
 
 class VisualOdometry:
     """Frame-to-frame relative motion of a robot whose camera sits at ``height`` m, pitched
-    ``pitch`` rad down (see the module docstring); ``backbone`` supplies the features and the
-    two-view solver (default: a :class:`ClassicalBackbone`)."""
+    ``pitch`` rad down (see the module docstring), from images of ``camera``'s size or larger
+    (downscaled to it: :mod:`~vgpnav_env.perception.resolution`); ``backbone`` supplies the features
+    and the two-view solver (default: a :class:`ClassicalBackbone`)."""
 
     def __init__(
         self, camera: PinholeCamera, height: float, pitch: float, backbone: ClassicalBackbone | None = None
@@ -67,11 +69,11 @@ class VisualOdometry:
 
     def reset(self, rgb: NDArray[np.uint8]) -> None:
         """A new sequence starting at ``rgb``."""
-        self._previous = rootsift(rgb, self.backbone.config)
+        self._previous = rootsift(downscale(rgb, self.camera), self.backbone.config)
 
     def measure(self, rgb: NDArray[np.uint8]) -> VisualMotion | None:
         """The motion from the previous frame to ``rgb`` (None: the two views did not match)."""
-        features = rootsift(rgb, self.backbone.config)
+        features = rootsift(downscale(rgb, self.camera), self.backbone.config)
         previous, self._previous = self._previous, features
         if previous is None:
             return None

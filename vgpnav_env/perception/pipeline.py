@@ -64,6 +64,7 @@ from vgpnav_env.perception.recovery import (
     pooled_pairs,
     second_round,
 )
+from vgpnav_env.perception.resolution import downscale, working_camera, working_size
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
     TrackingConfig,
@@ -308,8 +309,10 @@ class Perceiver:
     """Stateful VGP-Nav perception for one robot episode.
 
     ``backbone``: a :class:`Backbone` or a registry name (built with
-    :func:`~vgpnav_env.perception.backbones.make_backbone` for ``database``). ``camera`` defaults
-    to the database camera (query images must have its size). :attr:`map` is the fused log-odds
+    :func:`~vgpnav_env.perception.backbones.make_backbone` for ``database``). ``camera``: the query
+    camera, which must work at the database camera's size (:mod:`~vgpnav_env.perception.resolution`:
+    a wider one's images are downscaled to it; default: the database camera). :attr:`camera` is the
+    database camera, the one perception works with. :attr:`map` is the fused log-odds
     map of the episode (the live object). Call :meth:`reset` per episode, optionally
     :meth:`initialize` with frames taken standing still (else the first localized frame anchors
     the ground), then :meth:`perceive` per frame. ``privileged`` (simulated backbone only)
@@ -326,11 +329,12 @@ class Perceiver:
     ) -> None:
         self.database = database
         self.backbone = make_backbone(backbone, database=database) if isinstance(backbone, str) else backbone
-        self.camera = camera or database.camera
-        if (self.camera.width, self.camera.height) != (database.camera.width, database.camera.height):
+        self.camera = database.camera
+        query = camera or database.camera
+        if working_camera(query, database.config.max_width) != self.camera:
             raise ValueError(
-                f"query camera {self.camera.width}x{self.camera.height} differs from the database camera "
-                f"{database.camera.width}x{database.camera.height}; build both at the same size"
+                f"query camera {query.width}x{query.height} differs from the database camera "
+                f"{self.camera.width}x{self.camera.height}; build both at the same size"
             )
         self.config = config or PerceptionConfig()
         self.reset()
@@ -371,7 +375,7 @@ class Perceiver:
             raise ValueError(f"got {len(priv)} privileged entries for {len(images)} images")
         observations = []
         for rgb, p in zip(images, priv, strict=True):
-            frame = Frame(np.asarray(rgb), p, None, None, None, Clock())
+            frame = self._frame(rgb, p, None, None, None, Clock())
             loc = self._localize(frame)
             loc = second_round(self, frame, loc) or loc
             if loc.ok and not implausible_mount(loc.motion.T_wq, self._map_camera_z(), self.config.verify):
@@ -394,7 +398,7 @@ class Perceiver:
         prior: PoseGate | None = None,
         fuse: bool = True,
     ) -> PerceptionResult:
-        """Perceive one RGB frame (uint8 HxWx3 of the camera's size) and fuse it into :attr:`map`.
+        """Perceive one RGB frame (uint8 HxWx3 of the query camera's size) and fuse it into :attr:`map`.
 
         With a ``gate``, a pose outside it is lost ("inconsistent motion"), nothing is fused.
         ``predicted`` (tracking): a predicted camera pose ``T_wc`` (4x4); the references are chosen
@@ -412,7 +416,7 @@ class Perceiver:
         5 maps a localized frame.
         """
         clock = Clock()
-        frame = Frame(np.asarray(rgb), privileged, gate, predicted, prior, clock)
+        frame = self._frame(rgb, privileged, gate, predicted, prior, clock)
         first = self.attempt(frame, predicted)  # stages 1-4, verification
         lost = (first,) if prior is not None and first.result.reason != LostReason.INCONSISTENT_MOTION else ()
         outcome = Outcome(first, lost)
@@ -629,6 +633,34 @@ class Perceiver:
         anchors the ground must stand there (:func:`implausible_mount`): a floor set too high fails
         every right pose after it on the camera-height check."""
         return float(self.database.z_ground) + self.config.camera_height
+
+    def _frame(
+        self,
+        rgb: NDArray[np.uint8],
+        privileged: Privileged | None,
+        gate: PoseGate | None,
+        predicted: NDArray[np.float64] | None,
+        prior: PoseGate | None,
+        clock: Clock,
+    ) -> Frame:
+        """The :class:`~vgpnav_env.perception.recovery.Frame` of one call, its image (and the
+        simulated backbone's depth) downscaled to :attr:`camera` when the query camera is wider
+        (:mod:`~vgpnav_env.perception.resolution`; any other size fails in :meth:`_localize`)."""
+        rgb = np.asarray(rgb)
+        size = (self.camera.width, self.camera.height)
+        h, w = rgb.shape[:2]
+        if rgb.ndim == 3 and (w, h) != size and working_size(w, h, self.database.config.max_width) == size:
+            rgb = downscale(rgb, self.camera)
+            if privileged is not None:
+                depths = privileged.reference_depths
+                privileged = replace(
+                    privileged,
+                    query_depth=downscale(np.asarray(privileged.query_depth), self.camera, nearest=True),
+                    reference_depths=None
+                    if depths is None
+                    else np.stack([downscale(d, self.camera, nearest=True) for d in np.asarray(depths)]),
+                )
+        return Frame(rgb, privileged, gate, predicted, prior, clock)
 
     def _localize(
         self,
