@@ -64,7 +64,7 @@ from vgpnav_env.perception.recovery import (
     pooled_pairs,
     second_round,
 )
-from vgpnav_env.perception.resolution import downscale, working_camera, working_size
+from vgpnav_env.perception.resolution import downscale, working_size
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
     TrackingConfig,
@@ -331,7 +331,8 @@ class Perceiver:
         self.backbone = make_backbone(backbone, database=database) if isinstance(backbone, str) else backbone
         self.camera = database.camera
         query = camera or database.camera
-        if working_camera(query, database.config.max_width) != self.camera:
+        size = working_size(query.width, query.height, database.config.max_width)
+        if size != (self.camera.width, self.camera.height):
             raise ValueError(
                 f"query camera {query.width}x{query.height} differs from the database camera "
                 f"{self.camera.width}x{self.camera.height}; build both at the same size"
