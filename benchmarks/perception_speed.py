@@ -77,7 +77,7 @@ def perception(build_dir: Path, n_queries: int, threads: int) -> None:
 def database_preparation(build_dir: Path) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "database"
-        shutil.copytree(build_dir / "database", run, ignore=shutil.ignore_patterns("index"))
+        shutil.copytree(build_dir / "database", run, ignore=shutil.ignore_patterns("index", "index-*"))
         t0, c0 = time.perf_counter(), time.process_time()
         db = Database.open(run, config=DatabaseConfig(), progress=False)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
