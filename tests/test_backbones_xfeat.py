@@ -106,6 +106,21 @@ def test_fallback_runs_only_when_too_few_pairs_pass() -> None:
     assert backbone.fallback._query_memo is not None and len(backbone.fallback._query_memo.pairs) == 2
 
 
+def test_a_tracked_frame_gets_no_fallback() -> None:
+    """With expected poses (a state estimate tracks the frame) the fallback does not run: the frame
+    that fails is carried by the estimate, and the fallback's matcher is for relocalizing."""
+    query, _, refs, _, _ = render_corner(CAMERA, 5, seed=3)
+    backbone = ClassicalBackbone(ClassicalConfig(threads=1, fallback_pairs=2))
+    grey = [np.full_like(query, 128) for _ in refs]
+    out = backbone(
+        query, grey, CAMERA, reference_keys=list(range(5)), expected_T_qi=np.tile(np.eye(4), (5, 1, 1))
+    )
+    assert not out.confidence.any()
+    assert backbone.fallback is not None and backbone.fallback._query_memo is None  # never ran
+    backbone(query, grey, CAMERA, reference_keys=list(range(5)))
+    assert backbone.fallback._query_memo is not None and len(backbone.fallback._query_memo.pairs) == 2
+
+
 def test_database_stores_xfeat_features_beside_rootsift(tiny_build_dir: Path) -> None:
     from vgpnav_env.perception.backbones import make_backbone
     from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures

@@ -93,13 +93,15 @@ class ClassicalConfig:
     XFeat: its keypoints are about a pixel precise, SIFT's a fifth of one), RANSAC iteration bounds,
     ``min_inliers``. XFeat matches are refined when the caller gives the images
     (:func:`refine_matches` with ``refine_window`` pixels, 0 = off). Fallback (RootSIFT features
-    only; ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass, up to
-    ``fallback_pairs`` failed pairs (in reference order) are matched again with XFeat + LighterGlue
-    (:meth:`ClassicalConfig.fallback_config`; the references' XFeat features are extracted when
-    first needed). Scene check (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only, with a
-    database): where RootSIFT gets fewer than ``switch_share`` of the database's own overlapping
-    pairs right and XFeat + LighterGlue significantly more, every pair is matched with XFeat +
-    LighterGlue (``switch_share`` 0 = never). Planarity test with ``homography_threshold`` (px) and
+    only; ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass and the
+    caller expects no poses (a frame to relocalize, not a tracked one: a state estimate carries a
+    tracked frame that fails), up to ``fallback_pairs`` failed pairs (in reference order) are
+    matched again with XFeat + LighterGlue (:meth:`ClassicalConfig.fallback_config`; the
+    references' XFeat features are extracted when first needed). Scene check
+    (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only, with a database): where
+    RootSIFT gets fewer than ``switch_share`` of the database's own overlapping pairs right and
+    XFeat + LighterGlue significantly more, every pair is matched with XFeat + LighterGlue
+    (``switch_share`` 0 = never). Planarity test with ``homography_threshold`` (px) and
     ``planar_confidence_span``. Scale linking: query keypoints with parallax > ``min_parallax_deg``,
     ``min_common_points`` shared keypoints and a log-depth-ratio spread (MAD) <= ``max_link_spread``
     per link. Dense depth: references (best ``sweep_references`` by baseline among the
@@ -995,9 +997,10 @@ class ClassicalBackbone(Backbone):
         clock.lap("two_view")
         if (
             self.fallback is not None
+            and expected is None
             and sum(r[0] is not None for r in results) < self.config.fallback_min_pairs
         ):
-            results = self._fall_back(views, keys, expected, results, len(memo.features.keypoints))
+            results = self._fall_back(views, keys, results, len(memo.features.keypoints))
             clock.lap("fallback")
         pairs = [r[0] for r in results]
         n_matches = np.array([r[1] for r in results], np.int64)
@@ -1055,7 +1058,6 @@ class ClassicalBackbone(Backbone):
         self,
         views: Views,
         keys: list[Hashable | None],
-        expected: NDArray[np.float64] | None,
         results: list[tuple[PairGeometry | None, int, NDArray[np.float32]]],
         offset: int,
     ) -> list[tuple[PairGeometry | None, int, NDArray[np.float32]]]:
@@ -1073,11 +1075,7 @@ class ClassicalBackbone(Backbone):
                 return memo.pairs[keys[i]]
             fr = fallback.features(views.references[i], ref_keys[i])
             found = fallback.relative_pose(
-                memo.features,
-                fr,
-                views.camera,
-                None if expected is None else expected[i],
-                images=(views.query, views.references[i]),
+                memo.features, fr, views.camera, images=(views.query, views.references[i])
             )
             if keys[i] is not None:
                 memo.pairs[keys[i]] = found
