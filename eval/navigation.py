@@ -524,16 +524,18 @@ def navigation_settings(
     import inspect
 
     from vgpnav_env.envs.pointgoal import PointGoalEnv
+    from vgpnav_env.perception.resolution import describe_size
 
     defaults = {k: p.default for k, p in inspect.signature(PointGoalEnv).parameters.items()}
     size = env_kwargs["image_size"]
-    mode = perception_mode if plan.backbone not in (None, "model") else plan.backbone or "none"
+    pixels = plan.backbone not in (None, "model")
+    mode = perception_mode if pixels else plan.backbone or "none"
     return {
         "scene": scene,
         "layout": env_kwargs["layout"],
         "agent": plan.name,
         **({"actions": plan.actions} if plan.name == "ppo" else {}),
-        "image size": f"{size[0]}x{size[1]}",
+        "image size": describe_size(*size) if pixels else f"{size[0]}x{size[1]}",
         "backbone": plan.backbone or "none",
         "perception mode": mode,
         "max steps": env_kwargs.get("max_steps", defaults["max_steps"]),

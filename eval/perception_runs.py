@@ -47,6 +47,7 @@ from vgpnav_env.perception.feature_choice import FeatureChoice, cached_choice
 from vgpnav_env.perception.motion_averaging import AVERAGING_METHODS
 from vgpnav_env.perception.odometry import VisualOdometry, fuse_motion
 from vgpnav_env.perception.pipeline import Perceiver, PerceptionConfig, PerceptionResult
+from vgpnav_env.perception.resolution import describe_size
 from vgpnav_env.perception.retrieval import RETRIEVAL_METHODS, RetrievalConfig, nearby_cameras
 from vgpnav_env.perception.scale_recovery import GroundAnchor
 from vgpnav_env.perception.state import EKFState
@@ -420,7 +421,7 @@ class QueryRun:
             "build": str(self.build_dir),
             "perception split": perception_split(str(meta.get("source") or meta.get("scene", ""))),
             "layout": meta["layout"],
-            "image size": f"{meta['width']}x{meta['height']}",
+            "image size": describe_size(meta["width"], meta["height"]),
             "backbone": self.backbone,
             **(
                 {"features": classical_features(self.backbone_options, self.feature_choice())}

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vgpnav_env.geometry import PinholeCamera
-from vgpnav_env.perception.resolution import MAX_WIDTH, downscale, working_camera, working_size
+from vgpnav_env.perception.resolution import MAX_WIDTH, describe_size, downscale, working_camera, working_size
 
 
 @pytest.mark.parametrize(
@@ -42,3 +42,9 @@ def test_downscale_averages_and_never_upsamples() -> None:
     assert downscale(small, camera) is small  # already the camera's size: as is
     with pytest.raises(ValueError, match="smaller than the 2x1"):
         downscale(image[:1, :1], camera)
+
+
+def test_reports_name_the_size_perception_works_at() -> None:
+    assert describe_size(640, 480) == "640x480 (perceived at 320x240)"
+    assert describe_size(320, 240) == "320x240"
+    assert describe_size(640, 480, None) == "640x480"

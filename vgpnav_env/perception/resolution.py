@@ -28,6 +28,14 @@ def working_size(width: int, height: int, max_width: int | None = MAX_WIDTH) -> 
     return max_width, max(1, round(height * max_width / width))
 
 
+def describe_size(width: int, height: int, max_width: int | None = MAX_WIDTH) -> str:
+    """``WxH`` of an image size for reports, with the size perception works at when smaller:
+    e.g. ``640x480 (perceived at 320x240)``."""
+    size = working_size(width, height, max_width)
+    text = f"{width}x{height}"
+    return text if size == (width, height) else f"{text} (perceived at {size[0]}x{size[1]})"
+
+
 def working_camera(camera: PinholeCamera, max_width: int | None = MAX_WIDTH) -> PinholeCamera:
     """``camera`` at its :func:`working_size` (the same vertical field of view)."""
     size = working_size(camera.width, camera.height, max_width)
