@@ -45,7 +45,7 @@ def main() -> None:
         choice = choose_features(db, config)
         xfeat, p = choice.xfeat, choice.p
         if xfeat is None and args.both:
-            outcomes = pair_outcomes(db, config.fallback_config())
+            outcomes = pair_outcomes(db, config.switch_config())
             xfeat, p = float(outcomes.mean()), sign_test(pair_outcomes(db, config), outcomes)
         shown = "not tried" if xfeat is None else f"{xfeat:.2f} (p {p:.2g})"
         print(

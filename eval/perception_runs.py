@@ -206,7 +206,7 @@ def classical_features(options: Mapping[str, Any], choice: FeatureChoice | None 
 
     config = options.get("config") or ClassicalConfig(**options)
     if choice is not None and choice.features == "xfeat":
-        config = config.fallback_config()
+        config = config.switch_config()
     text = f"{config.features} + {config.matcher}"
     if config.uses_fallback:
         text += (

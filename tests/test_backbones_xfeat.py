@@ -171,8 +171,9 @@ def test_fallback_extracts_database_xfeat_features_on_first_use(
     unstored = Database.open(tiny_build_dir, config=replace(config, store_features=False), progress=False)
     xfeat = backbone.config.fallback_config()
     assert unstored.features_for(xfeat) is unstored.features_for(xfeat)  # one cache, not one per call
-    # A backbone matching every pair with XFeat stores every image's; the fallback then uses them.
-    make_backbone("classical", database=db, features="xfeat", matcher="lighterglue")
+    # A backbone matching every pair with XFeat at the fallback's size stores every image's; the
+    # fallback then uses them.
+    make_backbone("classical", database=db, features="xfeat", matcher="lighterglue", xfeat_upscale=1.0)
     again = Database.open(tiny_build_dir, config=config, progress=False)
     stored = make_backbone("classical", database=again).fallback.feature_cache
     assert isinstance(stored, StoredFeatures) and stored.n_images == len(again)
@@ -221,3 +222,11 @@ def test_the_fallback_refines_its_matches_on_the_pair_images(monkeypatch: pytest
     assert len(xfeat) == 2
     for (q, r), expected in zip(xfeat, grey[:2], strict=True):
         assert q is query and r is expected
+
+
+def test_the_scene_checks_xfeat_is_upscaled_the_fallbacks_is_not() -> None:
+    config = ClassicalConfig()
+    assert config.switch_config().features == config.fallback_config().features == "xfeat"
+    assert config.switch_config().xfeat_upscale == config.xfeat_upscale == 2.0
+    assert config.fallback_config().xfeat_upscale == 1.0
+    assert config.fallback_config().fallback_pairs == config.switch_config().fallback_pairs == 0

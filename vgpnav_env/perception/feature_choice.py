@@ -110,7 +110,7 @@ def sign_test(rootsift: NDArray[np.bool_], xfeat: NDArray[np.bool_]) -> float:
 
 
 def _key(fingerprint: str, db_config: DatabaseConfig, config: ClassicalConfig) -> dict[str, Any]:
-    alternative = config.fallback_config()
+    alternative = config.switch_config()
     key = {
         "version": _VERSION,
         "fingerprint": fingerprint,
@@ -167,7 +167,7 @@ def choose_features(db: Database, config: ClassicalConfig) -> FeatureChoice:
     share = float(rootsift.mean()) if len(rootsift) else 0.0
     choice = FeatureChoice("rootsift", share, None, len(rootsift))
     if share < config.switch_share and len(rootsift):
-        xfeat = pair_outcomes(db, config.fallback_config())
+        xfeat = pair_outcomes(db, config.switch_config())
         p = sign_test(rootsift, xfeat)
         features = "xfeat" if p < SIGNIFICANCE else "rootsift"
         choice = FeatureChoice(features, share, float(xfeat.mean()), len(rootsift), p)

