@@ -185,8 +185,7 @@ class ClassicalConfig:
 
     def fallback_config(self) -> ClassicalConfig:
         """The settings of the XFeat + LighterGlue fallback: :meth:`switch_config` with XFeat at
-        the image's own size (``xfeat_upscale`` 1: upscaled, the fallback changed navigation on the
-        generated scenes without a gain there)."""
+        the image's own size (``xfeat_upscale`` 1; ``benchmarks/matching.md`` has why)."""
         return replace(self.switch_config(), xfeat_upscale=1.0)
 
     def __post_init__(self) -> None:
