@@ -88,6 +88,29 @@ def test_scenes_leaves_each_scene_out(tmp_path: Path, capsys: pytest.CaptureFixt
     assert "nothing to leave out" in capsys.readouterr().err
 
 
+def test_a_not_gross_label_counts_near_poses_as_positive(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``--label not-gross`` fits on not gross against gross: a near pose (neither right nor gross)
+    is a positive there and a negative for the default label; a label outside ``LABELS`` fails."""
+    script = _fit_script()
+    rows = [r for r in script.read_rows(DATA) if r["scene"] == "home"]
+    near = [r for r in rows if r["right"] == "0" and r["gross"] == "0"]
+    assert near, "home's rows hold near poses"
+    assert not script.labels(near).any() and script.labels(near, "not-gross").all()
+    gross = [r for r in rows if r["gross"] == "1"]
+    assert not script.labels(gross, "not-gross").any()
+    with pytest.raises(ValueError, match="label must be one of"):
+        script.labels(rows, "near")
+    path, out = tmp_path / "home.csv", tmp_path / "m.json"
+    script.write_rows(path, rows)
+    assert script.main(["fit", str(path), "--label", "not-gross", "-o", str(out)]) == 0
+    assert VerificationModel.load(out).meta["label"] == "not-gross"
+    assert script.main(["fit", str(path), "--label", "right", "-o", str(out)]) == 0
+    assert "label" not in VerificationModel.load(out).meta
+    capsys.readouterr()
+
+
 def test_fit_recovers_a_known_logistic_model() -> None:
     rng = np.random.default_rng(0)
     X = rng.uniform(0, 1, (4000, 2))

@@ -18,7 +18,8 @@ what the rules accepted. ``fit --check MODEL`` refits and exits 1 unless every c
 with MODEL's within ``--tolerance``. ``score FRAMES [--model MODEL]`` prints a model's AUC and
 decisions on other frames (held-out scenes' records, collected the same way) without fitting.
 ``scenes FRAMES`` leaves one scene out at a time: the AUC of a fit on the others, per scene.
-``fit`` and ``scenes`` take ``--features`` to fit on some of the model's features only.
+``fit`` and ``scenes`` take ``--features`` to fit on some of the model's features only, and
+``--label not-gross`` to predict that a pose is not gross (0.5 m / 10 deg) instead of right.
 """
 
 from __future__ import annotations
@@ -82,12 +83,29 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def fit(rows: list[dict[str, str]], features: tuple[str, ...] = FEATURES) -> VerificationModel:
-    """The model of ``features`` (default: the package's) fitted on ``rows``."""
+#: What a model may predict: "right" (within :data:`RIGHT`, the installed model's) or "not-gross"
+#: (within 0.5 m / 10 deg: the reports' confidence AUC ranks not gross against gross).
+LABELS = ("right", "not-gross")
+
+
+def labels(rows: list[dict[str, str]], label: str = "right") -> np.ndarray:
+    """(n,) bool: the rows that are positive for ``label`` (one of :data:`LABELS`)."""
+    if label not in LABELS:
+        raise ValueError(f"label must be one of {LABELS}, got {label!r}")
+    if label == "right":
+        return np.array([int(r["right"]) for r in rows], bool)
+    return np.array([not int(r["gross"]) for r in rows], bool)
+
+
+def fit(
+    rows: list[dict[str, str]], features: tuple[str, ...] = FEATURES, label: str = "right"
+) -> VerificationModel:
+    """The model of ``features`` (default: the package's) fitted on ``rows`` to predict ``label``."""
     X = np.array([[float(r[f]) for f in features] for r in rows])
-    y = np.array([int(r["right"]) for r in rows], bool)
+    y = labels(rows, label)
     scenes = sorted({r["scene"] for r in rows})
-    return fit_model(X, y, features, l2=L2, meta={"scenes": scenes, "right_m_deg": list(RIGHT)})
+    meta = {"scenes": scenes, "right_m_deg": list(RIGHT)} | ({"label": label} if label != "right" else {})
+    return fit_model(X, y, features, l2=L2, meta=meta)
 
 
 def auc(score: np.ndarray, positive: np.ndarray) -> float:
@@ -110,8 +128,8 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
         f"AUC right vs not {auc(p, right):.3f}, "
         f"right vs gross {auc(p[right | gross], right[right | gross]):.3f}, "
         f"not gross vs gross (the reports' confidence AUC) {auc(p, ~gross):.3f}",
-        "| scene | rows | rules: accepted / gross / right | model: accepted / gross / right |",
-        "|---|---|---|---|",
+        "| scene | rows | rules: accepted / gross / right | model: accepted / gross / right | reports' AUC |",
+        "|---|---|---|---|---|",
     ]
     for scene in sorted({r["scene"] for r in rows}):
         m = np.array([r["scene"] == scene for r in rows])
@@ -119,14 +137,16 @@ def summary(model: VerificationModel, rows: list[dict[str, str]]) -> str:
             f"{int((a & m).sum())} / {int((a & m & gross).sum())} / {int((a & m & right).sum())}"
             for a in (ruled, accept)
         ]
-        lines.append(f"| {scene} | {int(m.sum())} | {cells[0]} | {cells[1]} |")
+        lines.append(f"| {scene} | {int(m.sum())} | {cells[0]} | {cells[1]} | {auc(p[m], ~gross[m]):.3f} |")
     return "\n".join(lines)
 
 
-def leave_one_scene_out(rows: list[dict[str, str]], features: tuple[str, ...] = FEATURES) -> str:
+def leave_one_scene_out(
+    rows: list[dict[str, str]], features: tuple[str, ...] = FEATURES, label: str = "right"
+) -> str:
     """Leave one scene out: per scene, the AUC (right against gross) of the model fitted on the other
     scenes' rows, and the pooled AUC of those out-of-scene probabilities (how well a fit carries to a
-    scene it has not seen), for a model of ``features``."""
+    scene it has not seen), for a model of ``features`` predicting ``label``."""
     scenes = sorted({r["scene"] for r in rows})
     X = np.array([[float(r[f]) for f in features] for r in rows])
     right = np.array([int(r["right"]) for r in rows], bool)
@@ -136,7 +156,8 @@ def leave_one_scene_out(rows: list[dict[str, str]], features: tuple[str, ...] = 
     per_scene = []
     for scene in scenes:
         out = np.array([r["scene"] == scene for r in rows])
-        p[out] = fit([r for r, o in zip(rows, out, strict=True) if not o], features).probabilities(X[out])
+        kept = [r for r, o in zip(rows, out, strict=True) if not o]
+        p[out] = fit(kept, features, label).probabilities(X[out])
         pair = out & (right | gross)
         per_scene.append(auc(p[pair], right[pair]))
         lines.append(f"| {scene} | {int(out.sum())} | {int((out & gross).sum())} | {per_scene[-1]:.3f} |")
@@ -159,12 +180,15 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--tolerance", type=float, default=1e-4)
     features = {"nargs": "+", "choices": FEATURES, "default": FEATURES, "metavar": "FEATURE"}
     f.add_argument("--features", **features, help="fit on these features only (ablations)")
+    label = {"choices": LABELS, "default": "right", "help": "what the model predicts (default right)"}
+    f.add_argument("--label", **label)
     s = sub.add_parser("score", help="a model's AUC and decisions on a frames CSV (e.g. held-out scenes)")
     s.add_argument("frames", type=Path)
     s.add_argument("--model", type=Path, help="model JSON (default: the installed model)")
     v = sub.add_parser("scenes", help="leave one scene out: how a fit carries to an unseen scene")
     v.add_argument("frames", type=Path)
     v.add_argument("--features", **features, help="fit on these features only (ablations)")
+    v.add_argument("--label", **label)
     args = parser.parse_args(argv)
     if args.command == "collect":
         rows = collect(args.reports)
@@ -179,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
         if len({r["scene"] for r in rows}) < 2:
             print(f"{args.frames} holds one scene: nothing to leave out", file=sys.stderr)
             return 2
-        print(leave_one_scene_out(rows, tuple(args.features)))
+        print(leave_one_scene_out(rows, tuple(args.features), args.label))
         return 0
     if args.command == "score":
         try:
@@ -200,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    model = fit(rows, tuple(args.features))
+    model = fit(rows, tuple(args.features), args.label)
     print(summary(model, rows))
     if args.check is not None:
         stored = VerificationModel.load(args.check)
