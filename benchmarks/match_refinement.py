@@ -34,7 +34,7 @@ from vgpnav_env.geometry import invert_pose, rotation_angle
 from vgpnav_env.perception.backbones.classical import (
     ClassicalBackbone,
     ClassicalConfig,
-    _poselib_camera,
+    poselib_camera,
     refine_matches,
 )
 from vgpnav_env.perception.backbones.threads import configure_threads
@@ -62,7 +62,7 @@ def main() -> None:
     build = load_build(args.build)
     db = open_database(args.build, DatabaseConfig(prior="none"))
     camera, K = db.camera, db.camera.K
-    cam = _poselib_camera(camera)
+    cam = poselib_camera(camera)
     depth = load_run_depth(args.build / "query")
     frames = np.unique(np.linspace(0, len(build.query) - 1, args.frames).round().astype(int))
     windows = [0, *args.windows]

@@ -18,6 +18,7 @@ import vgpnav_env.perception.database as database_module
 import vgpnav_env.perception.motion_averaging as metric_module
 import vgpnav_env.perception.pipeline as pipeline_module
 import vgpnav_env.perception.recovery as recovery_module
+import vgpnav_env.perception.resection as resection_module
 from vgpnav_env.geometry import rotation_angle
 from vgpnav_env.perception.backbones import ClassicalConfig, Privileged, SimulatedBackbone, make_backbone
 from vgpnav_env.perception.database import Database, DatabaseConfig, StoredFeatures
@@ -211,8 +212,8 @@ def test_simulated_backbone_is_exact(database: Database, query) -> None:
 def test_stage_4_places_the_centre_by_metric_distances(
     database: Database, query, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A pose motion averaging places over several references is the one
-    :func:`metric_centre` returns with the frame's metric scale (not the rays' alone)."""
+    """With the resection off, a pose motion averaging places over several references is the
+    one :func:`metric_centre` returns with the frame's metric scale (not the rays' alone)."""
     placed: list[tuple[np.ndarray, float]] = []
 
     def spy(motion, T_wi, T_iq, scale, scale_valid, config=None):
@@ -222,13 +223,46 @@ def test_stage_4_places_the_centre_by_metric_distances(
 
     monkeypatch.setattr(pipeline_module, "metric_centre", spy)
     run, _ = query
-    perceiver = Perceiver(database, "classical", config=PerceptionConfig.ablation(camera_height=QUERY_HEIGHT))
-    results = [perceiver.perceive(im) for im in run.images]
+    config = replace(PerceptionConfig.ablation(camera_height=QUERY_HEIGHT), resection=None)
+    results = [Perceiver(database, "classical", config=config).perceive(im) for im in run.images]
     averaged = [r for r in results if r.localized and "single-pair" not in r.detail]
     assert averaged and placed, [(r.status, r.reason, r.detail) for r in results]
     assert all(np.isfinite(scale) and scale > 0 for _, scale in placed)
     for r in averaged:
         assert any(np.allclose(r.T_wc, T) for T, _ in placed), r.detail
+
+
+def test_stage_4_resects_the_metric_centre(
+    database: Database, query, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """By default the metric centre's pose is refined by resection: a localized averaged pose is
+    the resection's where it stood, and the resection starts from the metric centre's pose."""
+    centres: list[np.ndarray] = []
+    resected: list[np.ndarray] = []
+    starts: list[np.ndarray] = []
+
+    def centre_spy(*args, **kwargs):
+        centres.append(metric_module.metric_centre(*args, **kwargs))
+        return centres[-1]
+
+    def resect_spy(T_wq, *args, **kwargs):
+        starts.append(T_wq)
+        result = resection_module.resect(T_wq, *args, **kwargs)
+        if result.T_wq is not None:
+            resected.append(result.T_wq)
+        return result
+
+    monkeypatch.setattr(pipeline_module, "metric_centre", centre_spy)
+    monkeypatch.setattr(pipeline_module, "resect", resect_spy)
+    run, _ = query
+    perceiver = Perceiver(database, "classical", config=PerceptionConfig.ablation(camera_height=QUERY_HEIGHT))
+    results = [perceiver.perceive(im) for im in run.images]
+    averaged = [r for r in results if r.localized and "single-pair" not in r.detail]
+    assert averaged and resected, [(r.status, r.reason, r.detail) for r in results]
+    for r in averaged:
+        assert any(np.allclose(r.T_wc, T) for T in resected + centres), r.detail
+    assert sum(any(np.allclose(r.T_wc, T) for T in resected) for r in averaged) >= len(averaged) // 2
+    assert starts and all(any(T is c for c in centres) for T in starts)
 
 
 @pytest.mark.parametrize(("rerank", "n_good"), [(0, 3), (40, 1)])

@@ -64,6 +64,7 @@ from vgpnav_env.perception.recovery import (
     pooled_pairs,
     second_round,
 )
+from vgpnav_env.perception.resection import ResectionConfig, resect
 from vgpnav_env.perception.resolution import downscale, working_size
 from vgpnav_env.perception.retrieval import (
     RetrievalConfig,
@@ -136,7 +137,8 @@ class PerceptionConfig:
 
     ``camera_height``: the calibrated camera-to-base height (metres), the metric anchor.
     ``verify``: the checks of :mod:`vgpnav_env.perception.verify`; ``recovery``: the second
-    chances of :mod:`vgpnav_env.perception.recovery`.
+    chances of :mod:`vgpnav_env.perception.recovery`; ``resection``: stage 4's refinement of a
+    metric pose (:mod:`vgpnav_env.perception.resection`; None: off).
     """
 
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
@@ -147,6 +149,7 @@ class PerceptionConfig:
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     depth: PosedDepthConfig = field(default_factory=PosedDepthConfig)
+    resection: ResectionConfig | None = field(default_factory=ResectionConfig)
     camera_height: float = CAMERA_HEIGHT
 
     def __post_init__(self) -> None:
@@ -769,6 +772,10 @@ class Perceiver:
             # The pairs' metric distances place the centre along the rays too.
             out, T_wi, averaging = loc.backbone, self.database.poses[loc.references], self.config.averaging
             T_wc = metric_centre(loc.motion, T_wi, out.T_iq, scale.scale, out.scale_valid, averaging)
+            if self.config.resection is not None and out.matches is not None:
+                # Points the references triangulate place the camera by reprojection.
+                resected = resect(T_wc, T_wi, out.matches, self.camera, self.config.resection).T_wq
+                T_wc = T_wc if resected is None else resected
             if provisional is not None:
                 provisional.initialize([(T_wc, None)], self.config.camera_height)
         z_ground = float(anchor.z_ground) if anchor.initialized else float("nan")

@@ -427,7 +427,7 @@ class FeatureCache:
             self._items.clear()
 
 
-def _poselib_camera(camera: PinholeCamera) -> dict[str, Any]:
+def poselib_camera(camera: PinholeCamera) -> dict[str, Any]:
     """poselib's camera dict of a pinhole camera."""
     K = camera.K
     return {
@@ -807,7 +807,7 @@ class ClassicalBackbone(Backbone):
         guided = expected_T_iq is not None and cfg.guided_min_inliers is not None
         if len(matches) < (min(cfg.min_inliers, cfg.guided_min_inliers) if guided else cfg.min_inliers):
             return None, 0, pixels
-        cam = _poselib_camera(camera)
+        cam = poselib_camera(camera)
         pose, info = poselib.estimate_relative_pose(
             pq,
             pr,
@@ -910,7 +910,7 @@ class ClassicalBackbone(Backbone):
         focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
         x_q = np.c_[pq, np.ones(len(pq))] @ K_inv.T
         x_r = np.c_[pr, np.ones(len(pr))] @ K_inv.T
-        cam = _poselib_camera(camera)
+        cam = poselib_camera(camera)
 
         def inliers(R: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.bool_]:
             return focal * sampson_distance(x_q, x_r, R, t) < error

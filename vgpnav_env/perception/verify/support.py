@@ -65,17 +65,45 @@ def epipolar_support(
     (P, 4, 4): the counts are then (P, k), one row per pose.
     """
     T_wq = np.asarray(T_wq, float)
-    stacked = T_wq.ndim == 3
-    T_wq = T_wq.reshape(-1, 4, 4)
+    poses = T_wq.reshape(-1, 4, 4)
+    out = np.zeros((len(poses), len(matches)), np.int64)
+    for i, err in enumerate(match_errors(poses, T_wi, matches, camera)):
+        out[:, i] = np.count_nonzero(err < max_error_px, axis=1)
+    return out if T_wq.ndim == 3 else out[0]
+
+
+def explained_matches(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    matches: Sequence[NDArray[np.floating]],
+    camera: PinholeCamera,
+    max_error_px: float,
+) -> list[NDArray[np.float64]]:
+    """Per reference, the matches (m, 4) pixels that one pose ``T_wq`` explains, as
+    :func:`epipolar_support` counts them."""
+    errors = match_errors(np.asarray(T_wq, float)[None], T_wi, matches, camera)
+    arrays = [np.asarray(m, float).reshape(-1, 4) for m in matches]
+    return [m[e[0] < max_error_px] for m, e in zip(arrays, errors, strict=True)]
+
+
+def match_errors(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    matches: Sequence[NDArray[np.floating]],
+    camera: PinholeCamera,
+) -> list[NDArray[np.float64]]:
+    """Per reference, the errors (P, m_i) in pixels of its matches under each of P poses ``T_wq``
+    (P, 4, 4): :func:`epipolar_support`'s Sampson distance (inf behind a camera or undefined)."""
     T_wi = np.asarray(T_wi, float).reshape(-1, 4, 4)
     if len(matches) != len(T_wi):
         raise ValueError(f"got {len(matches)} match arrays for {len(T_wi)} reference poses")
     K_inv = np.linalg.inv(camera.K)
     f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
-    out = np.zeros((len(T_wq), len(T_wi)), np.int64)
-    for i, (T, m) in enumerate(zip(T_wi, matches, strict=True)):
+    errors = []
+    for T, m in zip(T_wi, matches, strict=True):
         m = np.asarray(m, float).reshape(-1, 4)
         if len(m) == 0:
+            errors.append(np.zeros((len(T_wq), 0)))
             continue
         x_q = np.c_[m[:, :2], np.ones(len(m))] @ K_inv.T
         x_i = np.c_[m[:, 2:], np.ones(len(m))] @ K_inv.T
@@ -83,8 +111,8 @@ def epipolar_support(
             err = f * _pose_errors(invert_pose(T) @ T_wq[0], x_q, x_i)[None]
         else:
             err = f * _pose_errors_many(invert_pose(T) @ T_wq, x_q, x_i)
-        out[:, i] = np.count_nonzero(np.nan_to_num(err, nan=np.inf) < max_error_px, axis=1)
-    return out if stacked else out[0]
+        errors.append(np.nan_to_num(err, nan=np.inf))
+    return errors
 
 
 def _pose_errors(
