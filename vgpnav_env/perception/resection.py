@@ -63,12 +63,11 @@ class ResectionConfig:
 
 @dataclass(frozen=True)
 class Resection:
-    """A resection's outcome: the pose ``T_wq`` (None when it did not stand), its inlier points
-    ``n_inliers`` and the points it was computed from ``n_points``."""
+    """A resection's outcome: the pose ``T_wq`` (None when it did not stand) and its inlier
+    points ``n_inliers``."""
 
     T_wq: NDArray[np.float64] | None
     n_inliers: int
-    n_points: int
 
 
 def reference_points(
@@ -139,17 +138,17 @@ def resect(
     result when fewer than ``config.min_inliers`` points support a pose; a later iteration that
     fails keeps the earlier one's pose."""
     intrinsics = poselib_camera(camera)
-    pose, result = np.asarray(T_wq, float), Resection(None, 0, 0)
+    pose, result = np.asarray(T_wq, float), Resection(None, 0)
     for _ in range(config.iterations):
         kept = explained_matches(pose, T_wi, matches, camera, config.epipolar_px)
         pixels, points = reference_points(T_wi, kept, camera, config.reprojection_px, config.min_angle_deg)
         if len(points) < config.min_inliers:
-            return Resection(result.T_wq, result.n_inliers, len(points))
+            return result
         found, info = poselib.estimate_absolute_pose(
             pixels, points, intrinsics, {"max_reproj_error": config.reprojection_px}, {}
         )
         if info["num_inliers"] < config.min_inliers:
-            return Resection(result.T_wq, result.n_inliers, len(points))
+            return result
         pose = invert_pose(make_pose(found.R, found.t))
-        result = Resection(pose, int(info["num_inliers"]), len(points))
+        result = Resection(pose, int(info["num_inliers"]))
     return result
