@@ -21,6 +21,7 @@ from vgpnav_env.perception.retrieval import (
     pose_guided_references,
     select_references,
     tracked_references,
+    twin_references,
 )
 
 STEP = 40  # pixels between database crops of the panorama
@@ -223,6 +224,25 @@ def test_geometry_rejects_aliasing_and_prefers_diverse_views() -> None:
     sim_alias_best = sim.copy()
     sim_alias_best[30] = 1.0
     assert select_references(sim_alias_best, T, cfg)[0] == 30
+
+
+def test_twin_references_are_the_most_similar_views_that_cannot_see_the_pose() -> None:
+    # A room at (2, 2) looking +x (views 0-5), its identical twin at (8, 2) (6, 7), a view beside
+    # the pose (8) and a third place (9); the references are the room's first three views.
+    here = [camera_pose([2.0 + 0.1 * i, 2.0, 1.2], 0.0, 0.35) for i in range(6)]
+    twin = [camera_pose([8.0 + 0.1 * i, 2.0, 1.2], 0.0, 0.35) for i in range(2)]
+    beside = [camera_pose([2.5, 2.3, 1.2], 0.2, 0.35)]
+    third = [camera_pose([20.0, 2.0, 1.2], 0.0, 0.35)]
+    T = np.array(here + twin + beside + third)
+    sim = np.array([0.95, 0.9, 0.85, 0.8, 0.75, 0.7, 0.93, 0.92, 0.99, 0.5])
+    refs = [0, 1, 2]
+    assert twin_references(sim, T, here[0], CAMERA, refs, 2).tolist() == [6, 7]
+    # The cameras that see the pose's view (3-5, 8) and the excluded ones are never twins.
+    assert twin_references(sim, T, here[0], CAMERA, refs, 5).tolist() == [6, 7, 9]
+    assert twin_references(sim, T, here[0], CAMERA, [*refs, 6, 7, 9], 5).size == 0
+    assert twin_references(sim, T, here[0], CAMERA, refs, 0).size == 0
+    with pytest.raises(ValueError, match="twins must be"):
+        RetrievalConfig(twins=-1)
 
 
 def test_selection_edge_cases() -> None:

@@ -72,6 +72,7 @@ from vgpnav_env.perception.retrieval import (
     geometric_rerank,
     select_references,
     tracked_references,
+    twin_references,
 )
 from vgpnav_env.perception.scale_recovery import (
     GroundAnchor,
@@ -524,7 +525,7 @@ class Perceiver:
             return Attempt(lost, None, loc, pose)
         anchor = self.anchor
         with clock.stage("verification"):
-            T_wc, verdict = self.verify(loc, pose, prior)
+            T_wc, verdict = self.verify(loc, pose, prior, frame)
         rival = T_wc is not pose.T_wc
         if self.anchor is not anchor:  # the pose refuted the anchored floor: its scale anew
             with clock.stage("scale_recovery"):
@@ -566,12 +567,38 @@ class Perceiver:
         )
         return Attempt(result, points_w, loc, pose, rival)
 
+    def twin_pairs(
+        self,
+        frame: Frame,
+        loc: Localization,
+        refs: NDArray[np.int64],
+        pairs: Pairs,
+        T_wc: NDArray[np.float64],
+    ) -> Pairs | None:
+        """``pairs`` (the frame's pairs for verification, with the database images ``refs``) and
+        the query's pairs with the ``RetrievalConfig.twins``
+        :func:`~vgpnav_env.perception.retrieval.twin_references` of the global pose ``T_wc``: a twin
+        of the place elsewhere is then a rival with comparable support. None without any."""
+        cfg, db = self.config, self.database
+        if loc.similarity is None:
+            return None
+        twins = twin_references(
+            loc.similarity, db.poses, T_wc, self.camera, refs, cfg.retrieval.twins, cfg.tracking
+        )
+        if len(twins) == 0:
+            return None
+        both = np.concatenate([loc.references, twins])
+        out, _ = self.round(frame, both)  # the backbone has the references' pairs cached
+        return self.pairs(*pooled_pairs(refs, pairs.out, both, out))
+
     def verify(
-        self, loc: Localization, pose: MetricPose, prior: PoseGate | None = None
+        self, loc: Localization, pose: MetricPose, prior: PoseGate | None = None, frame: Frame | None = None
     ) -> tuple[NDArray[np.float64], Verdict]:
         """:func:`~vgpnav_env.perception.verify.assess` of the metric pose against the frame's
         references and those of the round that lost (:func:`pooled_pairs`): the pose and its
-        verdict. With a ``prior`` that the pose is not confirmed inside, the rival the prior picks
+        verdict. A pose the images confirm from global references without a ``prior`` is judged
+        again with the pairs of its place's twins (:meth:`twin_pairs`; needs the ``frame``). With a
+        ``prior`` that the pose is not confirmed inside, the rival the prior picks
         (:func:`prior_hypothesis`) replaces it when there is one."""
         refs, out = loc.references, loc.backbone
         if loc.other is not None:
@@ -603,6 +630,11 @@ class Perceiver:
                     self.anchor = GroundAnchor(cfg.scale)
                     self.anchor.initialize([(pose.T_wc, None)], cfg.camera_height)
                     self._anchored_by = [pose.T_wc]
+        if prior is None and frame is not None and a.verdict.ok and loc.source == "global":
+            twinned = self.twin_pairs(frame, loc, refs, pairs, pose.T_wc)
+            if twinned is not None:
+                pairs = twinned
+                a = verdict_at(camera_z)
         if prior is None or (a.verdict.ok and prior.admits(pose.T_wc)):
             return pose.T_wc, a.verdict
         picked = prior_hypothesis(

@@ -426,7 +426,9 @@ class RetrievalConfig:
     :func:`geometric_rerank` before the selection (``rerank_keypoints`` query keypoints,
     candidates with fewer than ``rerank_min_inliers`` verified matches drop to the end); 0 = off,
     the default: in identical wards the candidates with most verified matches are as often the
-    other ward's.
+    other ward's. ``twins``: verification of a global pose also matches the query with this many
+    :func:`twin_references`, so that a place with an identical twin elsewhere is ambiguous rather
+    than placed in whichever of the two the references showed; 0 = off.
     """
 
     k: int = 10
@@ -440,8 +442,11 @@ class RetrievalConfig:
     rerank: int = 0
     rerank_keypoints: int = 600
     rerank_min_inliers: int = 20
+    twins: int = 3
 
     def __post_init__(self) -> None:
+        if self.twins < 0:
+            raise ValueError(f"twins must be >= 0, got {self.twins}")
         if self.rerank < 0 or self.rerank_keypoints < 8 or self.rerank_min_inliers < 8:
             raise ValueError(
                 f"need rerank >= 0, rerank_keypoints >= 8 and rerank_min_inliers >= 8, got "
@@ -455,6 +460,32 @@ class RetrievalConfig:
             raise ValueError(f"outlier_percentile must be in [0, 100], got {self.outlier_percentile}")
         if self.l_scale is not None and self.l_scale <= 0:
             raise ValueError(f"l_scale must be positive metres or None, got {self.l_scale}")
+
+
+def twin_references(
+    similarity: ArrayLike,
+    T_w: ArrayLike,
+    T_wc: ArrayLike,
+    camera: PinholeCamera,
+    exclude: ArrayLike,
+    n: int,
+    tracking: TrackingConfig | None = None,
+) -> NDArray[np.int64]:
+    """Indices (<= ``n``,) of the database images most similar to the query (``similarity`` (M,),
+    best first) among those that cannot see what the pose ``T_wc`` (4, 4) sees -- not among the
+    cameras tracking would take there (``tracking``'s :func:`nearby_cameras` and
+    :func:`overlapping_cameras`) -- nor in ``exclude``: where an identical twin of the pose's
+    place would show, when Alg. 1's spatial-outlier rule left it out of the references."""
+    tracking = tracking or TrackingConfig()
+    s, T = np.asarray(similarity, float), np.asarray(T_w, float)
+    near = nearby_cameras(T, T_wc, tracking.radius, tracking.max_angle_deg).index
+    overlap = overlapping_cameras(
+        T, T_wc, camera, tracking.overlap_radius, tracking.max_angle_deg,
+        tracking.overlap_depths_m, tracking.min_overlap,
+    )  # fmt: skip
+    order = np.argsort(-s, kind="stable")
+    seeing = np.concatenate([near, overlap, np.asarray(exclude, np.int64)])
+    return order[~np.isin(order, seeing)][:n].astype(np.int64)
 
 
 def geometric_median(points: ArrayLike, iterations: int = 100, tol: float = 1e-7) -> NDArray[np.float64]:
