@@ -85,6 +85,17 @@ def test_reference_features_are_cached_by_key(scene, result):
     assert len(cache) == 2 and "a" not in cache and "c" in cache
 
 
+def test_pairs_only_skip_the_sweep_and_keep_the_pairs(scene, result):
+    _, out = result
+    pairs = ClassicalBackbone()(
+        scene["query"], scene["refs"], CAMERA, reference_keys=list(range(K_REFS)), depth=False
+    )
+    np.testing.assert_array_equal(pairs.T_qi, out.T_qi)
+    np.testing.assert_array_equal(pairs.confidence, out.confidence)
+    np.testing.assert_array_equal(pairs.scale_valid, out.scale_valid)
+    assert out.query_depth.any() and not pairs.query_depth.any()
+
+
 def test_black_query_and_unrelated_reference_fail_softly(scene):
     backbone = make_backbone("classical")
     black = np.zeros_like(scene["query"])

@@ -588,7 +588,7 @@ class Perceiver:
         if len(twins) == 0:
             return None
         both = np.concatenate([loc.references, twins])
-        out, _ = self.round(frame, both)  # the backbone has the references' pairs cached
+        out, _ = self.round(frame, both, depth=False)  # the backbone has the references' pairs cached
         return self.pairs(*pooled_pairs(refs, pairs.out, both, out))
 
     def verify(
@@ -744,11 +744,16 @@ class Perceiver:
         return loc
 
     def round(
-        self, frame: Frame, refs: NDArray[np.int64], guide: NDArray[np.float64] | None = None
+        self,
+        frame: Frame,
+        refs: NDArray[np.int64],
+        guide: NDArray[np.float64] | None = None,
+        depth: bool = True,
     ) -> tuple[BackboneOutput, MotionResult]:
         """Stages 2-3 over ``refs``: backbone, then motion averaging whose pose must pass the
         camera-height check. ``guide``: a camera pose ``T_wc`` the caller confidently predicts; the
-        backbone gets the relative poses it implies (``expected_T_qi``) to guide its pairs."""
+        backbone gets the relative poses it implies (``expected_T_qi``) to guide its pairs.
+        ``depth`` False: the pairs only (the backbone may skip the query depth)."""
         db, clock, privileged = self.database, frame.clock, frame.privileged
         with clock.stage("backbone"):
             if privileged is not None:
@@ -760,6 +765,7 @@ class Perceiver:
                 privileged=privileged,
                 reference_keys=[int(i) for i in refs],
                 expected_T_qi=None if guide is None else invert_pose(guide) @ db.poses[refs],
+                depth=depth,
             )
         clock.add(out.timings, "backbone")
         with clock.stage("motion_averaging"):

@@ -18,7 +18,8 @@ attribute ``privileged`` is True read the :class:`Privileged` bundle. A caller t
 query's pose (tracking) may pass ``expected_T_qi``: the ``T_qi`` it expects, from its predicted
 query pose and the references' database poses (metric translations). It is a prior, not the
 answer: a backbone may use it to guide its two-view geometry (the pose must still come from the
-images) or ignore it, and must stay correct when it is wrong.
+images) or ignore it, and must stay correct when it is wrong. A caller that needs the pairs only
+passes ``depth=False``: a backbone may then skip the query depth (zeros) to save the work.
 """
 
 from __future__ import annotations
@@ -48,8 +49,9 @@ class Views:
     """One backbone call's inputs, checked by :meth:`Backbone.__call__`: the ``query`` and the
     ``references`` (uint8 (H, W, 3) of ``camera``'s size), ``privileged`` ground truth
     (privileged backbones only), optional ``reference_keys`` (stable ids, e.g. database
-    indices, for caching per-image work) and optional ``expected_T_qi`` (k, 4, 4): the caller's
-    expected relative poses (module docstring; None: no expectation)."""
+    indices, for caching per-image work), optional ``expected_T_qi`` (k, 4, 4): the caller's
+    expected relative poses (module docstring; None: no expectation) and ``depth``: False when the
+    caller needs the pairs only (the query depth may be zeros)."""
 
     query: NDArray[np.uint8]
     references: Sequence[NDArray[np.uint8]]
@@ -57,6 +59,7 @@ class Views:
     privileged: Privileged | None = None
     reference_keys: Sequence[Hashable] | None = None
     expected_T_qi: NDArray[np.float64] | None = None
+    depth: bool = True
 
 
 @dataclass
@@ -157,13 +160,15 @@ class Backbone(ABC):
         privileged: Privileged | None = None,
         reference_keys: Sequence[Hashable] | None = None,
         expected_T_qi: NDArray[np.float64] | None = None,
+        depth: bool = True,
     ) -> BackboneOutput:
         """Reconstruct the query and references (see the module docstring for frames and scale).
 
         Images must be uint8 (H, W, 3) of ``camera``'s size (else ValueError). ``reference_keys``
         are optional stable identifiers of the references (e.g. database indices) a backbone may
         use to cache per-image work; ``privileged`` is read by privileged backbones only;
-        ``expected_T_qi`` (k, 4, 4): the caller's expected relative poses (module docstring).
+        ``expected_T_qi`` (k, 4, 4): the caller's expected relative poses (module docstring);
+        ``depth`` False: the pairs only, the query depth may be zeros.
         """
         check_inputs(query, references, camera, reference_keys)
         if expected_T_qi is not None:
@@ -172,7 +177,9 @@ class Backbone(ABC):
                 raise ValueError(
                     f"expected_T_qi must have shape ({len(references)}, 4, 4), got {expected_T_qi.shape}"
                 )
-        return self.reconstruct(Views(query, references, camera, privileged, reference_keys, expected_T_qi))
+        return self.reconstruct(
+            Views(query, references, camera, privileged, reference_keys, expected_T_qi, depth)
+        )
 
     @abstractmethod
     def reconstruct(self, views: Views) -> BackboneOutput:

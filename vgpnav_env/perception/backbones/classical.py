@@ -1034,7 +1034,7 @@ class ClassicalBackbone(Backbone):
         clock.lap("scale_linking")
         depth = np.zeros((camera.height, camera.width), np.float32)
         depth_conf = np.zeros_like(depth)
-        sweep_ids = self.select_sweep_references(confidence, linked, T_iq)
+        sweep_ids = self.select_sweep_references(confidence, linked, T_iq) if views.depth else []
         if sweep_ids and keypoint_depths:
             sparse = np.concatenate(keypoint_depths) / norm
             depth, depth_conf = plane_sweep(
