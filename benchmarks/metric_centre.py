@@ -16,15 +16,19 @@ the anchor). Columns: median centre error, share of frames within 2 cm and withi
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from vgpnav_env.build import build_runs, default_build_dir
 from vgpnav_env.eval.perception_runs import QuerySetup
+from vgpnav_env.geometry import PinholeCamera
+from vgpnav_env.perception.backbones.base import BackboneOutput
 from vgpnav_env.perception.backbones.threads import configure_threads
-from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, metric_centre
+from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, metric_centre
 from vgpnav_env.perception.pipeline import Clock, Perceiver, PerceptionConfig
 from vgpnav_env.perception.recovery import Frame
 from vgpnav_env.perception.retrieval import tracked_references
@@ -32,15 +36,29 @@ from vgpnav_env.perception.scale_recovery import GroundAnchor
 from vgpnav_env.perception.verify import check_scale
 
 
-def centre_errors(build: Path, stride: int, sigmas: list[float]) -> np.ndarray:
-    """(frames, 1 + len(sigmas)) centre errors in metres: the rays', then each sigma's."""
+class StageFourFrame(NamedTuple):
+    """One query frame at stage 4: its true pose (evaluation only), the references' poses, the
+    backbone output and motion averaging over them, stage 4's metric scale and the camera."""
+
+    T_true: np.ndarray
+    T_wi: np.ndarray
+    out: BackboneOutput
+    motion: MotionResult
+    scale: float
+    camera: PinholeCamera
+
+
+def stage_four_frames(build: Path, stride: int = 1) -> Iterator[StageFourFrame]:
+    """Every ``stride``-th query frame of ``build`` whose motion averaging places more than one
+    reference and whose stage 4 scale checks out, with the references tracking chooses around its
+    true camera pose, one backbone round and motion averaging (the pipeline's stages 2-3,
+    :meth:`~vgpnav_env.perception.pipeline.Perceiver.round`)."""
     worker = QuerySetup(build, "classical", {}, 0)()
     query, db = worker.build.query, worker.database
     config = replace(PerceptionConfig(), camera_height=float(query.poses[0][2, 3]))
     perceiver = Perceiver(db, worker.backbone, config=config)
     anchor = GroundAnchor(config.scale)  # the true floor under the first query frame
     anchor.initialize([(query.poses[0], None)], config.camera_height)
-    rows = []
     for i in range(0, len(query.images), stride):
         T_true = query.poses[i]
         sims = np.nan_to_num(db.index.similarity(query.images[i]), nan=-1.0)
@@ -57,15 +75,30 @@ def centre_errors(build: Path, stride: int, sigmas: list[float]) -> np.ndarray:
             ground = perceiver.ground(out, T, None)
         estimate = anchor.scale_for(T, ground, fallback_scale=ray_scale)
         estimate = check_scale(estimate, ray_scale, config.verify, float(motion.weights.sum()), ground)
-        if not estimate.ok:
-            continue
-        scale = estimate.scale
-        centres = [motion.T_wq[:3, 3]]
+        if estimate.ok:
+            yield StageFourFrame(T_true, db.poses[refs], out, motion, estimate.scale, perceiver.camera)
+
+
+def scene_build(scene: str) -> Path:
+    """A build directory as given, else the scene's default 320x240 build (built when missing)."""
+    path = Path(scene)
+    if not (path / "summary.json").is_file():
+        path = default_build_dir(scene, (320, 240))
+    if not (path / "summary.json").is_file():
+        build_runs(scene, path, size=(320, 240))
+    return path
+
+
+def centre_errors(build: Path, stride: int, sigmas: list[float]) -> np.ndarray:
+    """(frames, 1 + len(sigmas)) centre errors in metres: the rays', then each sigma's."""
+    rows = []
+    for f in stage_four_frames(build, stride):
+        centres = [f.motion.T_wq[:3, 3]]
         for sigma in sigmas:
             averaging = MotionAveragingConfig(distance_sigma=sigma)
-            T = metric_centre(motion, db.poses[refs], out.T_iq, scale, out.scale_valid, averaging)
+            T = metric_centre(f.motion, f.T_wi, f.out.T_iq, f.scale, f.out.scale_valid, averaging)
             centres.append(T[:3, 3])
-        rows.append(np.linalg.norm(np.array(centres) - T_true[:3, 3], axis=1))
+        rows.append(np.linalg.norm(np.array(centres) - f.T_true[:3, 3], axis=1))
     return np.array(rows).reshape(-1, 1 + len(sigmas))
 
 
@@ -81,12 +114,7 @@ def main() -> None:
     print("| scene | frames | centre | median (m) | within 2 cm | within 5 cm |")
     print("|---|---|---|---|---|---|")
     for scene in args.scenes:
-        path = Path(scene)
-        if not (path / "summary.json").is_file():
-            path = default_build_dir(scene, (320, 240))
-        if not (path / "summary.json").is_file():
-            build_runs(scene, path, size=(320, 240))
-        errors = centre_errors(path, args.stride, args.sigmas)
+        errors = centre_errors(scene_build(scene), args.stride, args.sigmas)
         names = ["rays", *(f"metric, distance_sigma {s:g}" for s in args.sigmas)]
         for name, e in zip(names, errors.T, strict=True):
             print(

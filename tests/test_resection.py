@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vgpnav_env.geometry import PinholeCamera, camera_pose, invert_pose, rotation_angle, transform_points
+from vgpnav_env.geometry import PinholeCamera, camera_pose, rotation_angle
 from vgpnav_env.perception.resection import ResectionConfig, reference_points, resect
 from vgpnav_env.perception.verify.support import explained_matches
 
@@ -15,14 +15,9 @@ CAMERA = PinholeCamera(320, 240, np.deg2rad(60.0))
 
 def _project(T_wc: np.ndarray, points_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (n, 2) of world points in camera ``T_wc`` and whether each lies in front and in view."""
-    p = transform_points(invert_pose(T_wc), points_w) @ CAMERA.K.T
-    uv = p[:, :2] / p[:, 2:]
+    uv, z = CAMERA.project_world(T_wc, points_w)
     seen = (
-        (p[:, 2] > 0)
-        & (uv[:, 0] >= 0)
-        & (uv[:, 0] < CAMERA.width)
-        & (uv[:, 1] >= 0)
-        & (uv[:, 1] < CAMERA.height)
+        (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < CAMERA.width) & (uv[:, 1] >= 0) & (uv[:, 1] < CAMERA.height)
     )
     return uv, seen
 

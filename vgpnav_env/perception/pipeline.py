@@ -588,7 +588,8 @@ class Perceiver:
         if len(twins) == 0:
             return None
         both = np.concatenate([loc.references, twins])
-        out, _ = self.round(frame, both, depth=False)  # the backbone has the references' pairs cached
+        # Within the verification stage; the backbone has the references' pairs cached.
+        out = self.reconstruct(frame, both, depth=False)
         return self.pairs(*pooled_pairs(refs, pairs.out, both, out))
 
     def verify(
@@ -744,37 +745,45 @@ class Perceiver:
         return loc
 
     def round(
+        self, frame: Frame, refs: NDArray[np.int64], guide: NDArray[np.float64] | None = None
+    ) -> tuple[BackboneOutput, MotionResult]:
+        """Stages 2-3 over ``refs``: backbone, then motion averaging whose pose must pass the
+        camera-height check. ``guide``: a camera pose ``T_wc`` the caller confidently predicts; the
+        backbone gets the relative poses it implies (``expected_T_qi``) to guide its pairs."""
+        clock = frame.clock
+        with clock.stage("backbone"):
+            out = self.reconstruct(frame, refs, guide)
+        clock.add(out.timings, "backbone")
+        with clock.stage("motion_averaging"):
+            cfg, T_wi = self.config, self.database.poses[refs]
+            motion = average_motion(
+                T_wi, out.T_qi, out.confidence, cfg.averaging, scale_valid=out.scale_valid
+            )
+            motion = check_height(motion, self.anchor, cfg.camera_height, cfg.verify)
+        return out, motion
+
+    def reconstruct(
         self,
         frame: Frame,
         refs: NDArray[np.int64],
         guide: NDArray[np.float64] | None = None,
         depth: bool = True,
-    ) -> tuple[BackboneOutput, MotionResult]:
-        """Stages 2-3 over ``refs``: backbone, then motion averaging whose pose must pass the
-        camera-height check. ``guide``: a camera pose ``T_wc`` the caller confidently predicts; the
-        backbone gets the relative poses it implies (``expected_T_qi``) to guide its pairs.
-        ``depth`` False: the pairs only (the backbone may skip the query depth)."""
-        db, clock, privileged = self.database, frame.clock, frame.privileged
-        with clock.stage("backbone"):
-            if privileged is not None:
-                privileged = replace(privileged, T_wi=db.poses[refs], reference_depths=None)
-            out = self.backbone(
-                frame.rgb,
-                [db.images[i] for i in refs],
-                self.camera,
-                privileged=privileged,
-                reference_keys=[int(i) for i in refs],
-                expected_T_qi=None if guide is None else invert_pose(guide) @ db.poses[refs],
-                depth=depth,
-            )
-        clock.add(out.timings, "backbone")
-        with clock.stage("motion_averaging"):
-            cfg = self.config
-            motion = average_motion(
-                db.poses[refs], out.T_qi, out.confidence, cfg.averaging, scale_valid=out.scale_valid
-            )
-            motion = check_height(motion, self.anchor, cfg.camera_height, cfg.verify)
-        return out, motion
+    ) -> BackboneOutput:
+        """The backbone's output for the frame's query and the database images ``refs`` (stage 2,
+        untimed: the caller's stage counts it); ``guide`` as in :meth:`round`; ``depth`` False: the
+        pairs only (the backbone may skip the query depth)."""
+        db, privileged = self.database, frame.privileged
+        if privileged is not None:
+            privileged = replace(privileged, T_wi=db.poses[refs], reference_depths=None)
+        return self.backbone(
+            frame.rgb,
+            [db.images[i] for i in refs],
+            self.camera,
+            privileged=privileged,
+            reference_keys=[int(i) for i in refs],
+            expected_T_qi=None if guide is None else invert_pose(guide) @ db.poses[refs],
+            depth=depth,
+        )
 
     def prior_camera(self, prior: PoseGate) -> NDArray[np.float64]:
         """The camera pose ``T_wc`` of a robot at the ``prior``'s planar pose: the calibrated camera

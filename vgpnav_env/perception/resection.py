@@ -92,7 +92,7 @@ def reference_points(
     _, first = np.unique(track * len(T_wi) + ref, return_index=True)
     uv, ref, track = uv[first], ref[first], track[first]
     count = np.bincount(track, minlength=len(keys))
-    P = camera.K @ np.linalg.inv(T_wi)[:, :3]  # (k, 3, 4) world -> reference pixels
+    P = camera.K @ invert_pose(T_wi)[:, :3]  # (k, 3, 4) world -> reference pixels
     centres = T_wi[:, :3, 3]
     pixels, points = [], []
     for c in np.unique(count[count >= 2]):
