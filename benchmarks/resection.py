@@ -5,10 +5,11 @@
 Every query frame of each scene's default 320x240 build (built when missing), with the references
 tracking chooses around the frame's true camera pose, one backbone round, motion averaging and
 stage 4's scale (``stage_four_frames`` of ``benchmarks/metric_centre.py``). The frame's pose is
-the metric centre, then :func:`~vgpnav_env.perception.resection.resect` of it with the default
-settings and with each ``--min-angles`` triangulation angle. The truth is read for evaluation
-only. Columns: frames within 5 cm / 5 deg, median centre error, and frames the resection moved more
-than 2 cm away from or towards the truth.
+the metric centre, then :func:`~vgpnav_env.perception.resection.resect` of it without its hybrid
+step, with the default settings, with each ``--hybrid-px`` threshold of the hybrid step and with
+each ``--min-angles`` triangulation angle. The truth is
+read for evaluation only. Columns: frames within 5 cm / 5 deg, median centre error, and frames the
+resection moved more than 2 cm away from or towards the truth.
 """
 
 from __future__ import annotations
@@ -25,11 +26,11 @@ from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, metric
 from vgpnav_env.perception.resection import ResectionConfig, resect
 
 
-def pose_errors(build: Path, configs: list[ResectionConfig]) -> np.ndarray:
+def pose_errors(build: Path, configs: list[ResectionConfig], stride: int = 1) -> np.ndarray:
     """(frames, 1 + len(configs), 2) centre error (m) and rotation error (deg): the metric
     centre's pose, then each resection's (the metric centre's where the resection did not stand)."""
     rows = []
-    for f in stage_four_frames(build):
+    for f in stage_four_frames(build, stride):
         centre = metric_centre(
             f.motion, f.T_wi, f.out.T_iq, f.scale, f.out.scale_valid, MotionAveragingConfig()
         )
@@ -53,20 +54,29 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("scenes", nargs="+")
+    parser.add_argument("--stride", type=int, default=1, help="every this many query frames")
+    parser.add_argument("--hybrid-px", type=float, nargs="*", default=[0.5, 2.0])
     parser.add_argument("--min-angles", type=float, nargs="*", default=[1.0, 2.0, 3.0])
     args = parser.parse_args()
     configure_threads(1)
-    configs = [ResectionConfig(), *(ResectionConfig(min_angle_deg=a) for a in args.min_angles)]
+    configs = [
+        ResectionConfig(hybrid_epipolar_px=None),
+        ResectionConfig(),
+        *(ResectionConfig(hybrid_epipolar_px=px) for px in args.hybrid_px),
+        *(ResectionConfig(min_angle_deg=a) for a in args.min_angles),
+    ]
     names = [
         "metric centre",
+        "resection, no hybrid step",
         "resection (default)",
+        *(f"resection, hybrid_epipolar_px {px:g}" for px in args.hybrid_px),
         *(f"resection, min_angle_deg {a:g}" for a in args.min_angles),
     ]
     header = ["scene", "frames", "pose", "within 5 cm / 5 deg", "median (m)", "away > 2 cm", "closer > 2 cm"]
     print("| " + " | ".join(header) + " |")
     print("|---|---|---|---|---|---|---|")
     for scene in args.scenes:
-        e = pose_errors(scene_build(scene), configs)
+        e = pose_errors(scene_build(scene), configs, args.stride)
         for j, name in enumerate(names):
             right = np.mean((e[:, j, 0] < 0.05) & (e[:, j, 1] < 5.0))
             shift = e[:, j, 0] - e[:, 0, 0]

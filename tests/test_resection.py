@@ -104,3 +104,39 @@ def test_a_query_keypoint_in_one_reference_only_gives_no_point() -> None:
 def test_bad_settings_are_refused(kwargs: dict) -> None:
     with pytest.raises(ValueError, match="resection needs"):
         ResectionConfig(**kwargs)
+
+
+def _plain_wall(seed: int):
+    """The scene of :func:`_scene` as on a plain wall: 16 keypoints matched in two references
+    (1 px noise), the rest of each reference's matches its own (0.3 px noise)."""
+    T_wq, T_wi, _ = _scene(seed, noise_px=0.0)
+    rng = np.random.default_rng(seed + 100)
+    points = np.c_[rng.uniform(3.0, 4.0, 900), rng.uniform(-1.5, 1.5, 900), rng.uniform(0.0, 2.0, 900)]
+    uv_q, seen_q = _project(T_wq, points)
+    shared = np.flatnonzero(seen_q)[:16]
+    own = np.array_split(np.flatnonzero(seen_q)[16:], len(T_wi))
+    matches = []
+    for i, T in enumerate(T_wi):
+        uv_i, seen_i = _project(T, points)
+        rows = []
+        for idx, noise in ((shared, 1.0), (own[i], 0.3)):
+            idx = idx[seen_i[idx]]
+            rows.append(np.c_[uv_q[idx], uv_i[idx] + rng.normal(0.0, noise, (len(idx), 2))])
+        matches.append(np.concatenate(rows).astype(np.float32))
+    return T_wq, T_wi, matches
+
+
+def test_single_matches_refine_a_pose_few_points_place() -> None:
+    """With few keypoints matched in two references, the hybrid step (single matches by their
+    epipolar error) places the pose nearer than the resection alone, on average over 6 scenes."""
+    alone, hybrid = [], []
+    off = ResectionConfig(hybrid_epipolar_px=None)
+    for seed in range(6):
+        T_wq, T_wi, matches = _plain_wall(seed)
+        start = _offset(T_wq, [0.05, -0.04, 0.0], 0.3)
+        for config, errors in ((off, alone), (ResectionConfig(), hybrid)):
+            result = resect(start, T_wi, matches, CAMERA, config)
+            assert result.T_wq is not None
+            errors.append(np.linalg.norm(result.T_wq[:3, 3] - T_wq[:3, 3]))
+    # Measured: mean 0.047 m alone, 0.008 m with the hybrid step.
+    assert np.mean(hybrid) < 0.02 and np.mean(hybrid) < 0.5 * np.mean(alone)

@@ -8,7 +8,11 @@ not depend on the query's pose or on the ground scale. The query pose then follo
 correspondences (poselib's LO-RANSAC P3P with a non-linear refinement). Only matches the pose to
 refine explains (:func:`~vgpnav_env.perception.verify.support.explained_matches`) enter, so the
 resection refines that pose and does not jump to another place; it is repeated from the refined
-pose ``iterations`` times.
+pose ``iterations`` times. A last step refines the resected pose on both kinds of evidence at
+once (poselib's hybrid pose, LO-RANSAC started from it): the triangulated points by reprojection
+and every explained match, also those seen in one reference only, by its epipolar error to that
+reference's known pose. On plain walls few keypoints are matched in two references; their single
+matches still constrain the pose.
 
 Motion averaging places the centre from the directions of the pairs' translations, whose errors
 grow with the distance along each ray; the triangulated points fix the centre by reprojection
@@ -43,6 +47,8 @@ class ResectionConfig:
         min_angle_deg: a point's rays from its references must span at least this angle.
         min_inliers: the resected pose stands only with at least this many inlier points.
         iterations: resections in a row, each from the last one's pose (0: off).
+        hybrid_epipolar_px: the hybrid step's inlier threshold for single matches (Sampson
+            distance; None: no hybrid step).
     """
 
     epipolar_px: float = 4.5
@@ -50,10 +56,13 @@ class ResectionConfig:
     min_angle_deg: float = 0.5
     min_inliers: int = 12
     iterations: int = 2
+    hybrid_epipolar_px: float | None = 1.0
 
     def __post_init__(self) -> None:
         if min(self.epipolar_px, self.reprojection_px) <= 0 or self.min_angle_deg < 0:
             raise ValueError("resection needs positive pixel thresholds and a non-negative angle")
+        if self.hybrid_epipolar_px is not None and self.hybrid_epipolar_px <= 0:
+            raise ValueError(f"hybrid_epipolar_px must be > 0 px or None, got {self.hybrid_epipolar_px}")
         if self.min_inliers < 4 or self.iterations < 0:
             raise ValueError(
                 f"resection needs min_inliers >= 4 and iterations >= 0, "
@@ -134,9 +143,9 @@ def resect(
     config: ResectionConfig,
 ) -> Resection:
     """The pose ``T_wq`` refined by resection on the points the references ``T_wi`` (k, 4, 4)
-    triangulate from the matches it explains (see the module docstring). ``T_wq`` None in the
-    result when fewer than ``config.min_inliers`` points support a pose; a later iteration that
-    fails keeps the earlier one's pose."""
+    triangulate from the matches it explains, then by the hybrid step (see the module docstring).
+    ``T_wq`` None in the result when fewer than ``config.min_inliers`` points support a pose; a
+    later iteration that fails keeps the earlier one's pose."""
     intrinsics = poselib_camera(camera)
     pose, result = np.asarray(T_wq, float), Resection(None, 0)
     for _ in range(config.iterations):
@@ -151,4 +160,48 @@ def resect(
             return result
         pose = invert_pose(make_pose(found.R, found.t))
         result = Resection(pose, int(info["num_inliers"]))
+    if result.T_wq is not None and config.hybrid_epipolar_px is not None:
+        result = Resection(_hybrid(result.T_wq, T_wi, matches, camera, config), result.n_inliers)
     return result
+
+
+def _camera_pose(T_cw: NDArray[np.float64]) -> poselib.CameraPose:
+    """poselib's pose of a world -> camera transform (4, 4)."""
+    pose = poselib.CameraPose()
+    pose.R, pose.t = T_cw[:3, :3], T_cw[:3, 3]
+    return pose
+
+
+def _hybrid(
+    T_wq: NDArray[np.float64],
+    T_wi: NDArray[np.float64],
+    matches: Sequence[NDArray[np.floating]],
+    camera: PinholeCamera,
+    config: ResectionConfig,
+) -> NDArray[np.float64]:
+    """The hybrid step (module docstring) from the resected pose ``T_wq``, over the matches it
+    explains within ``config.epipolar_px``: triangulated points at ``reprojection_px``, single
+    matches at ``hybrid_epipolar_px``."""
+    kept = explained_matches(T_wq, T_wi, matches, camera, config.epipolar_px)
+    pixels, points = reference_points(T_wi, kept, camera, config.reprojection_px, config.min_angle_deg)
+    pairs = []
+    for i, m in enumerate(kept):
+        if len(m):
+            pair = poselib.PairwiseMatches()
+            pair.cam_id1, pair.cam_id2 = i, 0
+            pair.x1, pair.x2 = np.ascontiguousarray(m[:, 2:]), np.ascontiguousarray(m[:, :2])
+            pairs.append(pair)
+    intrinsics = poselib_camera(camera)
+    found, _ = poselib.estimate_hybrid_pose(
+        pixels,
+        points,
+        pairs,
+        intrinsics,
+        [_camera_pose(T) for T in invert_pose(T_wi)],
+        [intrinsics] * len(T_wi),
+        {"max_reproj_error": config.reprojection_px, "max_epipolar_error": config.hybrid_epipolar_px},
+        {},
+        _camera_pose(invert_pose(T_wq)),
+    )
+    T = invert_pose(make_pose(found.R, found.t))
+    return T if np.isfinite(T).all() else T_wq
