@@ -7,14 +7,15 @@ tracking chooses around the frame's true camera pose, one backbone round, motion
 stage 4's scale (``stage_four_frames`` of ``benchmarks/metric_centre.py``). The frame's pose is
 the metric centre, then :func:`~vgpnav_env.perception.resection.resect` of it without its hybrid
 step, with the default settings, with each ``--hybrid-px`` threshold of the hybrid step and with
-each ``--min-angles`` triangulation angle. The truth is
-read for evaluation only. Columns: frames within 5 cm / 5 deg, median centre error, and frames the
-resection moved more than 2 cm away from or towards the truth.
+each ``--min-angles`` triangulation angle. The truth is read for evaluation only. Columns: frames
+within 5 cm / 5 deg, median centre error, frames the resection moved more than 2 cm away from or
+towards the truth, and the resection's CPU per frame.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 import numpy as np
@@ -26,17 +27,22 @@ from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, metric
 from vgpnav_env.perception.resection import ResectionConfig, resect
 
 
-def pose_errors(build: Path, configs: list[ResectionConfig], stride: int = 1) -> np.ndarray:
+def pose_errors(
+    build: Path, configs: list[ResectionConfig], stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """(frames, 1 + len(configs), 2) centre error (m) and rotation error (deg): the metric
-    centre's pose, then each resection's (the metric centre's where the resection did not stand)."""
-    rows = []
+    centre's pose, then each resection's (the metric centre's where the resection did not stand);
+    and (1 + len(configs),) mean CPU milliseconds per frame of each resection (0 for the centre)."""
+    rows, cpu = [], np.zeros(1 + len(configs))
     for f in stage_four_frames(build, stride):
         centre = metric_centre(
             f.motion, f.T_wi, f.out.T_iq, f.scale, f.out.scale_valid, MotionAveragingConfig()
         )
         poses = [centre]
-        for c in configs:
+        for j, c in enumerate(configs, start=1):
+            start = time.process_time()
             resected = resect(centre, f.T_wi, f.out.matches, f.camera, c).T_wq
+            cpu[j] += time.process_time() - start
             poses.append(centre if resected is None else resected)
         errors = [
             (
@@ -46,7 +52,7 @@ def pose_errors(build: Path, configs: list[ResectionConfig], stride: int = 1) ->
             for P in poses
         ]
         rows.append(errors)
-    return np.array(rows).reshape(-1, 1 + len(configs), 2)
+    return np.array(rows).reshape(-1, 1 + len(configs), 2), 1000.0 * cpu / max(len(rows), 1)
 
 
 def main() -> None:
@@ -73,16 +79,17 @@ def main() -> None:
         *(f"resection, min_angle_deg {a:g}" for a in args.min_angles),
     ]
     header = ["scene", "frames", "pose", "within 5 cm / 5 deg", "median (m)", "away > 2 cm", "closer > 2 cm"]
+    header.append("CPU ms / frame")
     print("| " + " | ".join(header) + " |")
-    print("|---|---|---|---|---|---|---|")
+    print("|---" * len(header) + "|")
     for scene in args.scenes:
-        e = pose_errors(scene_build(scene), configs, args.stride)
+        e, cpu_ms = pose_errors(scene_build(scene), configs, args.stride)
         for j, name in enumerate(names):
             right = np.mean((e[:, j, 0] < 0.05) & (e[:, j, 1] < 5.0))
             shift = e[:, j, 0] - e[:, 0, 0]
             print(
                 f"| {scene} | {len(e)} | {name} | {right:.3f} | {np.median(e[:, j, 0]):.4f} | "
-                f"{(shift > 0.02).sum()} | {(shift < -0.02).sum()} |",
+                f"{(shift > 0.02).sum()} | {(shift < -0.02).sum()} | {cpu_ms[j]:.1f} |",
                 flush=True,
             )
 

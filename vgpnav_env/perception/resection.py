@@ -148,9 +148,12 @@ def resect(
     later iteration that fails keeps the earlier one's pose."""
     intrinsics = poselib_camera(camera)
     pose, result = np.asarray(T_wq, float), Resection(None, 0)
-    for _ in range(config.iterations):
+    hybrid = config.hybrid_epipolar_px is not None and config.iterations > 0
+    for step in range(config.iterations + hybrid):
         kept = explained_matches(pose, T_wi, matches, camera, config.epipolar_px)
         pixels, points = reference_points(T_wi, kept, camera, config.reprojection_px, config.min_angle_deg)
+        if step == config.iterations:  # every resection stood: the hybrid step from the last one
+            return Resection(_hybrid(pose, T_wi, kept, pixels, points, intrinsics, config), result.n_inliers)
         if len(points) < config.min_inliers:
             return result
         found, info = poselib.estimate_absolute_pose(
@@ -160,8 +163,6 @@ def resect(
             return result
         pose = invert_pose(make_pose(found.R, found.t))
         result = Resection(pose, int(info["num_inliers"]))
-    if result.T_wq is not None and config.hybrid_epipolar_px is not None:
-        result = Resection(_hybrid(result.T_wq, T_wi, matches, camera, config), result.n_inliers)
     return result
 
 
@@ -175,15 +176,15 @@ def _camera_pose(T_cw: NDArray[np.float64]) -> poselib.CameraPose:
 def _hybrid(
     T_wq: NDArray[np.float64],
     T_wi: NDArray[np.float64],
-    matches: Sequence[NDArray[np.floating]],
-    camera: PinholeCamera,
+    kept: list[NDArray[np.float64]],
+    pixels: NDArray[np.float64],
+    points: NDArray[np.float64],
+    intrinsics: dict,
     config: ResectionConfig,
 ) -> NDArray[np.float64]:
-    """The hybrid step (module docstring) from the resected pose ``T_wq``, over the matches it
-    explains within ``config.epipolar_px``: triangulated points at ``reprojection_px``, single
-    matches at ``hybrid_epipolar_px``."""
-    kept = explained_matches(T_wq, T_wi, matches, camera, config.epipolar_px)
-    pixels, points = reference_points(T_wi, kept, camera, config.reprojection_px, config.min_angle_deg)
+    """The hybrid step (module docstring) from the resected pose ``T_wq`` over the matches it
+    explains (``kept``, per reference) and their triangulated ``points`` seen at query ``pixels``:
+    points at ``reprojection_px``, single matches at ``hybrid_epipolar_px``."""
     pairs = []
     for i, m in enumerate(kept):
         if len(m):
@@ -191,7 +192,6 @@ def _hybrid(
             pair.cam_id1, pair.cam_id2 = i, 0
             pair.x1, pair.x2 = np.ascontiguousarray(m[:, 2:]), np.ascontiguousarray(m[:, :2])
             pairs.append(pair)
-    intrinsics = poselib_camera(camera)
     found, _ = poselib.estimate_hybrid_pose(
         pixels,
         points,
