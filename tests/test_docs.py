@@ -6,6 +6,8 @@
   line in its shell blocks parses.
 - Every ``python`` block of ``docs/*.md`` runs, page by page (one namespace per page, in order), in
   one fresh process: pages may register measures and write files, which must not leak into this one.
+- Every relative link of the README, ``docs/`` and ``benchmarks/`` pages names a file or folder
+  that exists, and its ``#anchor``, if any, a heading of a Markdown target.
 """
 
 from __future__ import annotations
@@ -49,6 +51,37 @@ def readme_command_lines() -> list[list[str]]:
     parts = [part for line in lines for part in line.split("&&")]
     parts += [span for span in re.findall(r"`(vgpnav [^`]*--out[^`]*)`", README) if "ppo:" not in span]
     return [words[1:] for words in (shlex.split(p, comments=True) for p in parts) if words[:1] == ["vgpnav"]]
+
+
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def anchor(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def markdown_anchors(path: Path) -> set[str]:
+    return {anchor(h) for h in re.findall(r"^#+ (.*)$", FENCE.sub("", path.read_text()), re.M)}
+
+
+@pytest.mark.parametrize(
+    "page",
+    [ROOT / "README.md", *PAGES, *sorted((ROOT / "benchmarks").glob("**/*.md"))],
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
+def test_relative_links_resolve(page: Path) -> None:
+    broken = []
+    for target in LINK.findall(FENCE.sub("", page.read_text())):
+        if re.match(r"[a-z]+:", target):
+            continue  # http(s), mailto
+        path, _, fragment = target.partition("#")
+        file = (page.parent / path).resolve() if path else page
+        if not file.exists():
+            broken.append(target)
+        elif fragment and file.suffix == ".md" and fragment not in markdown_anchors(file):
+            broken.append(target)
+    assert not broken, f"{page.relative_to(ROOT)}: broken links {broken}"
 
 
 def test_readme_is_short_and_names_every_command() -> None:
