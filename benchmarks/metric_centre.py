@@ -31,6 +31,7 @@ from vgpnav_env.perception.backbones.threads import configure_threads
 from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, MotionResult, metric_centre
 from vgpnav_env.perception.pipeline import Clock, Perceiver, PerceptionConfig
 from vgpnav_env.perception.recovery import Frame
+from vgpnav_env.perception.resection import ResectionConfig, resect
 from vgpnav_env.perception.retrieval import tracked_references
 from vgpnav_env.perception.scale_recovery import GroundAnchor
 from vgpnav_env.perception.verify import check_scale
@@ -46,6 +47,22 @@ class StageFourFrame(NamedTuple):
     motion: MotionResult
     scale: float
     camera: PinholeCamera
+
+    def centre(self, averaging: MotionAveragingConfig | None = None) -> np.ndarray:
+        """Stage 4's metric centre of the frame (``T_wc``), default averaging settings unless given."""
+        return metric_centre(
+            self.motion,
+            self.T_wi,
+            self.out.T_iq,
+            self.scale,
+            self.out.scale_valid,
+            averaging or MotionAveragingConfig(),
+        )
+
+    def resected(self, T_wc: np.ndarray, config: ResectionConfig) -> np.ndarray:
+        """``T_wc`` refined by stage 4's resection (itself where the resection does not stand)."""
+        found = resect(T_wc, self.T_wi, self.out.matches, self.camera, config).T_wq
+        return T_wc if found is None else found
 
 
 def stage_four_frames(build: Path, stride: int = 1) -> Iterator[StageFourFrame]:
@@ -95,9 +112,7 @@ def centre_errors(build: Path, stride: int, sigmas: list[float]) -> np.ndarray:
     for f in stage_four_frames(build, stride):
         centres = [f.motion.T_wq[:3, 3]]
         for sigma in sigmas:
-            averaging = MotionAveragingConfig(distance_sigma=sigma)
-            T = metric_centre(f.motion, f.T_wi, f.out.T_iq, f.scale, f.out.scale_valid, averaging)
-            centres.append(T[:3, 3])
+            centres.append(f.centre(MotionAveragingConfig(distance_sigma=sigma))[:3, 3])
         rows.append(np.linalg.norm(np.array(centres) - f.T_true[:3, 3], axis=1))
     return np.array(rows).reshape(-1, 1 + len(sigmas))
 

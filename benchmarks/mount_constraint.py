@@ -24,14 +24,14 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from metric_centre import scene_build, stage_four_frames
+from metric_centre import StageFourFrame, scene_build, stage_four_frames
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from vgpnav_env.geometry import camera_pose, camera_yaw_pitch, invert_pose, rotation_angle
+from vgpnav_env.eval.perception_runs import pose_errors
+from vgpnav_env.geometry import camera_pose, camera_yaw_pitch
 from vgpnav_env.perception.backbones.threads import configure_threads
-from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, metric_centre
-from vgpnav_env.perception.resection import ResectionConfig, reference_points, resect
+from vgpnav_env.perception.resection import ResectionConfig, reference_points
 from vgpnav_env.perception.verify.support import explained_matches, match_errors
 
 #: Residuals are clipped here (in units of their pixel threshold) so that a point behind the
@@ -43,7 +43,7 @@ def refine(
     T_wq: NDArray[np.float64],
     parametrize: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     start: NDArray[np.float64],
-    f,
+    f: StageFourFrame,
     config: ResectionConfig,
     prior: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
 ) -> NDArray[np.float64]:
@@ -55,10 +55,7 @@ def refine(
 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
         T = parametrize(x)
-        T_cw = invert_pose(T)
-        uvw = (points @ T_cw[:3, :3].T + T_cw[:3, 3]) @ f.camera.K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            reprojection = (uvw[:, :2] / uvw[:, 2:] - pixels).ravel() / config.reprojection_px
+        reprojection = (f.camera.project_world(T, points)[0] - pixels).ravel() / config.reprojection_px
         sampson = [e[0] for e in match_errors(T[None], f.T_wi, kept, f.camera)]
         single = np.concatenate(sampson) / (config.hybrid_epipolar_px or 1.0) if sampson else np.zeros(0)
         r = np.concatenate([reprojection, single, prior(x) if prior is not None else []])
@@ -112,11 +109,7 @@ def main() -> None:
         errors: dict[str, list[tuple[float, float]]] = {}
         cpu: dict[str, float] = {}
         for f in stage_four_frames(scene_build(scene), args.stride):
-            centre = metric_centre(
-                f.motion, f.T_wi, f.out.T_iq, f.scale, f.out.scale_valid, MotionAveragingConfig()
-            )
-            resected = resect(centre, f.T_wi, f.out.matches, f.camera, config).T_wq
-            T = centre if resected is None else resected
+            T = f.resected(f.centre(), config)
             poses = {"stage 4 (6 DoF, default)": T}
             z, pitch = float(f.T_true[2, 3]), camera_yaw_pitch(f.T_true)[1]
             for name, (parametrize, start, prior) in variants(T, z, pitch, args.height_errors).items():
@@ -124,12 +117,7 @@ def main() -> None:
                 poses[name] = refine(T, parametrize, start, f, config, prior)
                 cpu[name] = cpu.get(name, 0.0) + time.process_time() - t0
             for name, P in poses.items():
-                errors.setdefault(name, []).append(
-                    (
-                        float(np.linalg.norm(P[:3, 3] - f.T_true[:3, 3])),
-                        float(np.degrees(rotation_angle(P[:3, :3], f.T_true[:3, :3]))),
-                    )
-                )
+                errors.setdefault(name, []).append(pose_errors(P, f.T_true))
         for name, rows in errors.items():
             e = np.array(rows)
             right = int(((e[:, 0] < 0.05) & (e[:, 1] < 5.0)).sum())

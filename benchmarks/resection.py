@@ -21,13 +21,12 @@ from pathlib import Path
 import numpy as np
 from metric_centre import scene_build, stage_four_frames
 
-from vgpnav_env.geometry import rotation_angle
+from vgpnav_env.eval.perception_runs import pose_errors
 from vgpnav_env.perception.backbones.threads import configure_threads
-from vgpnav_env.perception.motion_averaging import MotionAveragingConfig, metric_centre
-from vgpnav_env.perception.resection import ResectionConfig, resect
+from vgpnav_env.perception.resection import ResectionConfig
 
 
-def pose_errors(
+def frame_errors(
     build: Path, configs: list[ResectionConfig], stride: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
     """(frames, 1 + len(configs), 2) centre error (m) and rotation error (deg): the metric
@@ -35,23 +34,13 @@ def pose_errors(
     and (1 + len(configs),) mean CPU milliseconds per frame of each resection (0 for the centre)."""
     rows, cpu = [], np.zeros(1 + len(configs))
     for f in stage_four_frames(build, stride):
-        centre = metric_centre(
-            f.motion, f.T_wi, f.out.T_iq, f.scale, f.out.scale_valid, MotionAveragingConfig()
-        )
+        centre = f.centre()
         poses = [centre]
         for j, c in enumerate(configs, start=1):
             start = time.process_time()
-            resected = resect(centre, f.T_wi, f.out.matches, f.camera, c).T_wq
+            poses.append(f.resected(centre, c))
             cpu[j] += time.process_time() - start
-            poses.append(centre if resected is None else resected)
-        errors = [
-            (
-                np.linalg.norm(P[:3, 3] - f.T_true[:3, 3]),
-                np.degrees(rotation_angle(P[:3, :3], f.T_true[:3, :3])),
-            )
-            for P in poses
-        ]
-        rows.append(errors)
+        rows.append([pose_errors(P, f.T_true) for P in poses])
     return np.array(rows).reshape(-1, 1 + len(configs), 2), 1000.0 * cpu / max(len(rows), 1)
 
 
@@ -83,7 +72,7 @@ def main() -> None:
     print("| " + " | ".join(header) + " |")
     print("|---" * len(header) + "|")
     for scene in args.scenes:
-        e, cpu_ms = pose_errors(scene_build(scene), configs, args.stride)
+        e, cpu_ms = frame_errors(scene_build(scene), configs, args.stride)
         for j, name in enumerate(names):
             right = np.mean((e[:, j, 0] < 0.05) & (e[:, j, 1] < 5.0))
             shift = e[:, j, 0] - e[:, 0, 0]

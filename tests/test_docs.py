@@ -71,8 +71,9 @@ def markdown_anchors(path: Path) -> set[str]:
     ids=lambda p: str(p.relative_to(ROOT)),
 )
 def test_relative_links_resolve(page: Path) -> None:
-    broken = []
-    for target in LINK.findall(FENCE.sub("", page.read_text())):
+    broken, text = [], FENCE.sub("", page.read_text())
+    assert LINK.findall(text) or "](" not in text, "the link pattern found none of the page's links"
+    for target in LINK.findall(text):
         if re.match(r"[a-z]+:", target):
             continue  # http(s), mailto
         path, _, fragment = target.partition("#")
